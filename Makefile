@@ -1,0 +1,26 @@
+# The README's two commands: `make demo` (main job) and `make test` (the suite).
+# Both create .venv on first use; torch is pinned through constraints.txt.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+SAMPLE  ?= ../shared/data/surround-view-sample
+
+.PHONY: setup demo test clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -c constraints.txt -e ".[server,env,test]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/parksim demo --sample $(SAMPLE) -o out/demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf out .pytest_cache

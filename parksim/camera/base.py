@@ -1,0 +1,215 @@
+"""Central radial camera on the whole sphere: the shared projection and unprojection.
+
+Every model here maps a ray at angle ``theta`` off the optical axis to a radial image
+distance ``rho(theta) = theta * q(theta)`` (in normalised units, then scaled by
+``fx, fy`` and shifted by ``cx, cy``). Projection computes ``theta = atan2(r, z)`` and
+never divides by ``z``, so points behind the image plane (a 190 deg lens sees them)
+project correctly instead of mirroring. Subclasses supply only ``q`` and ``drho``.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+__all__ = ["CameraModel"]
+
+_FOLD_SCAN_STEPS = 4096
+
+
+def _sinc(theta: Tensor) -> Tensor:
+    """sin(theta)/theta, smooth through 0."""
+    return torch.sinc(theta / math.pi)
+
+
+class CameraModel(ABC):
+    """Base class: intrinsics as float64 tensors (set ``requires_grad`` to optimise them).
+
+    ``fx, fy`` scale the normalised radial image, ``cx, cy`` is the principal point in
+    pixels with pixel centres at integer coordinates (OpenCV), ``k`` the model's radial
+    coefficients and ``theta_max`` the largest valid angle off the axis: the smaller of
+    half the lens' field of view and the first fold-back of ``rho`` (``drho <= 0``).
+    """
+
+    model: ClassVar[str] = ""
+
+    def __init__(self, width: int, height: int, fx: float | Tensor, fy: float | Tensor,
+                 cx: float | Tensor, cy: float | Tensor, k: Tensor | list[float],
+                 max_fov_deg: float) -> None:
+        self.width = int(width)
+        self.height = int(height)
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"{type(self).__name__}: image size must be positive, got {width}x{height}")
+        as_t = lambda v: torch.as_tensor(v, dtype=torch.float64)  # noqa: E731
+        self.fx, self.fy, self.cx, self.cy = as_t(fx), as_t(fy), as_t(cx), as_t(cy)
+        self.k = as_t(k).reshape(-1)
+        self.max_fov_deg = float(max_fov_deg)
+        values = torch.cat([self.fx.reshape(1), self.fy.reshape(1), self.cx.reshape(1),
+                            self.cy.reshape(1), self.k]).detach()
+        if not torch.isfinite(values).all():
+            raise ValueError(f"{type(self).__name__}: intrinsics must be finite, got {values.tolist()}")
+        if self.fx.item() <= 0 or self.fy.item() <= 0:
+            raise ValueError(f"{type(self).__name__}: focal lengths must be positive, got fx={self.fx.item()}, fy={self.fy.item()}")
+        if not 0 < self.max_fov_deg <= 360:
+            raise ValueError(f"{type(self).__name__}: max_fov_deg must be in (0, 360], got {max_fov_deg}")
+        self.theta_max = self._valid_theta_max()
+
+    # --- what a model defines -------------------------------------------------------
+    @abstractmethod
+    def q(self, theta: Tensor, k: Tensor) -> Tensor:
+        """rho(theta) / theta, smooth at theta = 0."""
+
+    @abstractmethod
+    def drho(self, theta: Tensor, k: Tensor) -> Tensor:
+        """d rho / d theta."""
+
+    @abstractmethod
+    def to_dict(self) -> dict[str, Any]:
+        """Serialisable intrinsics, read back by ``parksim.camera.camera_from_dict``."""
+
+    @abstractmethod
+    def scaled(self, s: float) -> "CameraModel":
+        """The same lens imaged at ``s`` times the resolution (pixel-centre convention)."""
+
+    # --- shared machinery -----------------------------------------------------------
+    def rho(self, theta: Tensor, k: Tensor) -> Tensor:
+        return theta * self.q(theta, k)
+
+    def _valid_theta_max(self) -> float:
+        """Half the field of view, cut at the first fold-back of rho (scan, then bisection)."""
+        limit = min(math.radians(self.max_fov_deg) / 2.0, math.pi - 1e-3)
+        k = self.k.detach()
+        grid = torch.linspace(0.0, limit, _FOLD_SCAN_STEPS + 1, dtype=torch.float64)
+        bad = (self.drho(grid, k) <= 0).nonzero()
+        if len(bad) == 0:
+            return limit
+        i = int(bad[0])
+        if i == 0:
+            raise ValueError(f"{type(self).__name__}: rho(theta) is not increasing at the optical axis (k={k.tolist()})")
+        lo, hi = float(grid[i - 1]), float(grid[i])
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if float(self.drho(torch.tensor(mid, dtype=torch.float64), k)) > 0:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+    def _intrinsics(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        cast = lambda t: t.to(dtype=like.dtype, device=like.device)  # noqa: E731
+        return cast(self.fx), cast(self.fy), cast(self.cx), cast(self.cy), cast(self.k)
+
+    @property
+    def rho_max(self) -> float:
+        """Normalised radial distance of the valid image circle's edge."""
+        t = torch.tensor(self.theta_max, dtype=torch.float64)
+        return float(self.rho(t, self.k.detach()))
+
+    def theta_of(self, points: Tensor) -> Tensor:
+        """Angle off the optical axis, ``atan2(r, z)`` (no gradient guard: for masks and culling)."""
+        return torch.atan2(points[..., :2].norm(dim=-1), points[..., 2])
+
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Camera-frame points ``[...,3]`` -> pixels ``uv[...,2]`` and a validity mask ``[...]``.
+
+        Valid means: not the camera centre, within ``theta_max`` and inside the image.
+        Invalid points still get finite pixels (beyond the lens they land on the rim of the
+        image circle in their own direction, never mirrored), and finite gradients.
+        """
+        if points.shape[-1] != 3:
+            raise ValueError(f"project expects points[..., 3], got shape {tuple(points.shape)}")
+        fx, fy, cx, cy, k = self._intrinsics(points)
+        tiny = torch.finfo(points.dtype).tiny
+        axis_eps = math.sqrt(torch.finfo(points.dtype).eps)
+
+        x, y, z = points.unbind(-1)
+        n2 = x * x + y * y + z * z
+        centre = n2 <= tiny
+        x = torch.where(centre, torch.zeros_like(x), x)
+        y = torch.where(centre, torch.zeros_like(y), y)
+        z = torch.where(centre, torch.ones_like(z), z)
+        n = torch.sqrt(torch.where(centre, torch.ones_like(n2), n2))
+
+        r2 = x * x + y * y
+        on_axis = r2 <= (axis_eps * n) ** 2
+        r = torch.sqrt(torch.where(on_axis, torch.ones_like(r2), r2))
+        theta = torch.where(on_axis, torch.where(z > 0, torch.zeros_like(z), torch.full_like(z, math.pi)),
+                            torch.atan2(r, z))
+
+        beyond = theta > self.theta_max
+        theta_in = torch.where(beyond, torch.zeros_like(theta), theta)
+        # rho/r = theta q(theta) / (n sin theta) = q / (sinc n): exact and smooth through the axis.
+        inside_scale = self.q(theta_in, k) / (_sinc(theta_in) * n)
+        t_max = torch.tensor(self.theta_max, dtype=points.dtype, device=points.device)
+        rim_scale = self.rho(t_max, k) / torch.where(on_axis, torch.ones_like(r), r)
+        scale = torch.where(beyond, rim_scale, inside_scale)
+
+        u = fx * scale * x + cx
+        v = fy * scale * y + cy
+        uv = torch.stack([u, v], dim=-1)
+        valid = (~centre) & (~beyond) & self.in_image(uv)
+        return uv, valid
+
+    def in_image(self, uv: Tensor) -> Tensor:
+        """Pixel inside the image rectangle (edges at -0.5 and size - 0.5)."""
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
+    def _normalised(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        fx, fy, cx, cy, _ = self._intrinsics(uv)
+        return (uv[..., 0] - cx) / fx, (uv[..., 1] - cy) / fy
+
+    def pixel_valid(self, uv: Tensor) -> Tensor:
+        """Pixel inside the image and inside the lens' valid circle (``theta <= theta_max``)."""
+        mx, my = self._normalised(uv)
+        return self.in_image(uv) & (mx * mx + my * my <= self.rho_max ** 2)
+
+    def _solve_theta(self, rho: Tensor, k: Tensor) -> Tensor:
+        """theta with rho(theta) = rho on [0, theta_max]: Newton safeguarded by bisection."""
+        kd = k.detach()
+        rho = rho.detach()
+        lo = torch.zeros_like(rho)
+        hi = torch.full_like(rho, self.theta_max)
+        q0 = self.q(torch.zeros((), dtype=rho.dtype, device=rho.device), kd)
+        theta = torch.clamp(rho / q0, max=self.theta_max)
+        for _ in range(40 if rho.dtype == torch.float64 else 25):
+            f = self.rho(theta, kd) - rho
+            lo = torch.where(f <= 0, theta, lo)
+            hi = torch.where(f >= 0, theta, hi)
+            step = theta - f / self.drho(theta, kd)
+            inside = (step >= lo) & (step <= hi) & torch.isfinite(step)
+            theta = torch.where(inside, step, 0.5 * (lo + hi))
+        return theta
+
+    def unproject(self, uv: Tensor) -> Tensor:
+        """Pixels ``uv[...,2]`` -> unit rays ``[...,3]`` in the camera frame, also past 90 deg.
+
+        Pixels outside the valid circle give the ray at ``theta_max`` in their direction
+        (``pixel_valid`` tells them apart). Gradients follow the implicit function theorem:
+        one Newton step taken with autograd from the converged, detached root.
+        """
+        if uv.shape[-1] != 2:
+            raise ValueError(f"unproject expects uv[..., 2], got shape {tuple(uv.shape)}")
+        _, _, _, _, k = self._intrinsics(uv)
+        mx, my = self._normalised(uv)
+        rho2 = mx * mx + my * my
+        nonzero = rho2 > 0
+        rho = torch.sqrt(torch.where(nonzero, rho2, torch.ones_like(rho2)))
+        theta0 = self._solve_theta(rho, k)
+        interior = nonzero & (theta0 < self.theta_max)
+        newton = theta0 - (self.rho(theta0, k) - rho) / self.drho(theta0, k.detach()).detach()
+        theta = torch.where(interior, newton, theta0)
+        theta = torch.where(nonzero, theta, torch.zeros_like(theta))
+        # sin(theta)/rho = sinc(theta)/q(theta) in the interior; at the rim rho is clamped.
+        rho_used = torch.where(interior | ~nonzero, torch.ones_like(rho), rho)
+        lateral = torch.where(interior | ~nonzero, _sinc(theta) / self.q(theta, k),
+                              torch.sin(theta) / rho_used)
+        ray = torch.stack([lateral * mx, lateral * my, torch.cos(theta)], dim=-1)
+        return ray
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.to_dict()})"

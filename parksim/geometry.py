@@ -1,0 +1,140 @@
+"""Rigid-body helpers on 4x4 homogeneous transforms (torch, batched, differentiable).
+
+Naming follows ``T_a_b``: the transform that maps points in frame ``b`` into frame ``a``.
+An ego pose is ``T_world_vehicle``; a planner pose ``(x, y, yaw)`` lies on the ground
+(z = 0, roll = pitch = 0) with yaw in radians about the world z axis.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "make_transform",
+    "invert_transform",
+    "compose",
+    "transform_points",
+    "pose_from_xy_yaw",
+    "xy_yaw_from_pose",
+    "pose_from_xyz_rpy",
+    "rotation_from_quaternion",
+    "quaternion_from_rotation",
+    "as_pose",
+]
+
+
+def make_transform(rotation: Tensor, translation: Tensor) -> Tensor:
+    """Stack ``R[...,3,3]`` and ``t[...,3]`` into ``T[...,4,4]``."""
+    batch = rotation.shape[:-2]
+    bottom = torch.zeros(*batch, 1, 4, dtype=rotation.dtype, device=rotation.device)
+    bottom[..., 0, 3] = 1.0
+    top = torch.cat([rotation, translation.unsqueeze(-1)], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def invert_transform(T: Tensor) -> Tensor:
+    """Inverse of a rigid transform, using R^T rather than a general matrix inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Rt = R.transpose(-1, -2)
+    return make_transform(Rt, -(Rt @ t.unsqueeze(-1)).squeeze(-1))
+
+
+def compose(*transforms: Tensor) -> Tensor:
+    """``compose(A, B, C) = A @ B @ C`` (apply C first)."""
+    out = transforms[0]
+    for T in transforms[1:]:
+        out = out @ T
+    return out
+
+
+def transform_points(T: Tensor, points: Tensor) -> Tensor:
+    """Apply ``T[...,4,4]`` to ``points[...,3]`` (broadcasting over batch dims)."""
+    return points @ T[..., :3, :3].transpose(-1, -2) + T[..., :3, 3]
+
+
+def _rot_z(yaw: Tensor) -> Tensor:
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    z, o = torch.zeros_like(yaw), torch.ones_like(yaw)
+    return torch.stack([c, -s, z, s, c, z, z, z, o], dim=-1).reshape(*yaw.shape, 3, 3)
+
+
+def pose_from_xy_yaw(x: float | Tensor, y: float | Tensor, yaw: float | Tensor,
+                     dtype: torch.dtype = torch.float64) -> Tensor:
+    """Planner pose ``(x, y, yaw)`` -> ``T_world_vehicle`` on the ground plane."""
+    x, y, yaw = (torch.as_tensor(v, dtype=dtype) for v in (x, y, yaw))
+    x, y, yaw = torch.broadcast_tensors(x, y, yaw)
+    t = torch.stack([x, y, torch.zeros_like(x)], dim=-1)
+    return make_transform(_rot_z(yaw), t)
+
+
+def xy_yaw_from_pose(T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``T_world_vehicle`` -> ``(x, y, yaw)``; roll, pitch and z are dropped."""
+    return T[..., 0, 3], T[..., 1, 3], torch.atan2(T[..., 1, 0], T[..., 0, 0])
+
+
+def pose_from_xyz_rpy(x: float, y: float, z: float, roll: float, pitch: float, yaw: float,
+                      dtype: torch.dtype = torch.float64) -> Tensor:
+    """Full 6-DoF pose, rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (ISO 8855 / aerospace order)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    R = torch.tensor([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ], dtype=dtype)
+    return make_transform(R, torch.tensor([x, y, z], dtype=dtype))
+
+
+def rotation_from_quaternion(q: Tensor) -> Tensor:
+    """Unit quaternion ``q[...,4]`` in (w, x, y, z) order -> rotation matrix ``[...,3,3]``.
+
+    The quaternion is normalised first; a zero quaternion maps to the identity (never NaN).
+    """
+    norm = q.norm(dim=-1, keepdim=True)
+    identity = torch.zeros_like(q)
+    identity[..., 0] = 1.0
+    safe = torch.where(norm > 0, q, identity)
+    w, x, y, z = (safe / safe.norm(dim=-1, keepdim=True)).unbind(-1)
+    R = torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1)
+    return R.reshape(*q.shape[:-1], 3, 3)
+
+
+def quaternion_from_rotation(R: Tensor) -> Tensor:
+    """Rotation matrix ``[...,3,3]`` -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    m = R
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    cands = torch.stack([
+        torch.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+        torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+        torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
+        torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
+    ], dim=-2)
+    diag = torch.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], dim=-1)
+    best = diag.argmax(dim=-1)
+    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def as_pose(pose: Tensor | Sequence[float], dtype: torch.dtype = torch.float64) -> Tensor:
+    """Accept a 4x4 ``T_world_vehicle``, an ``(x, y, yaw)`` or an ``(x, y, z, roll, pitch, yaw)``."""
+    if isinstance(pose, Tensor) and pose.shape[-2:] == (4, 4):
+        return pose.to(dtype)
+    values = [float(v) for v in (pose.tolist() if isinstance(pose, Tensor) else pose)]
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"pose has non-finite values: {values}")
+    if len(values) == 3:
+        return pose_from_xy_yaw(*values, dtype=dtype)
+    if len(values) == 6:
+        return pose_from_xyz_rpy(*values, dtype=dtype)
+    raise ValueError(f"pose must be a 4x4 matrix, (x, y, yaw) or (x, y, z, roll, pitch, yaw); got {len(values)} values")

@@ -1,0 +1,170 @@
+"""Differentiable surround-view inverse perspective mapping (fisheye images <-> BEV).
+
+Each BEV pixel is a ground point (z = 0) in the vehicle frame; it is projected into every
+camera through the exact lens model and sampled bilinearly, and the cameras are blended
+with smooth weights that sum to one wherever any camera sees the point (ParkGaussian,
+"Differentiable Surround-View IPM"). Grids and weights depend only on the rig and the BEV
+spec, so they are built once and every call is a few ``grid_sample`` calls: cheap, and
+differentiable with respect to the images.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .geometry import invert_transform, transform_points
+from .rig import BEVSpec, Rig
+
+__all__ = ["IPM"]
+
+
+def _smoothstep(x: Tensor) -> Tensor:
+    """C1 ramp from 0 (x <= 0) to 1 (x >= 1)."""
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _to_grid(uv: Tensor, width: int, height: int) -> Tensor:
+    """Pixel coordinates (centres at integers) -> ``grid_sample`` coordinates (align_corners=True)."""
+    scale = torch.tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)], dtype=uv.dtype)
+    return uv * scale - 1.0
+
+
+def _as_nchw(image: Tensor) -> tuple[Tensor, bool, bool]:
+    """HxW, HxWxC or BxHxWxC -> BxCxHxW, remembering what to undo."""
+    squeeze_c = image.ndim == 2
+    if squeeze_c:
+        image = image.unsqueeze(-1)
+    batched = image.ndim == 4
+    if not batched:
+        image = image.unsqueeze(0)
+    return image.permute(0, 3, 1, 2), batched, squeeze_c
+
+
+def _from_nchw(x: Tensor, batched: bool, squeeze_c: bool) -> Tensor:
+    x = x.permute(0, 2, 3, 1)
+    if not batched:
+        x = x.squeeze(0)
+    return x.squeeze(-1) if squeeze_c else x
+
+
+class IPM:
+    """Fisheye images -> BEV (``__call__``) and BEV maps -> fisheye images (``to_cameras``).
+
+    ``edge_px`` is the width of the smooth fade of each camera's weight at its image border
+    and lens edge; ``falloff`` the power of the ground distance in the weight
+    (``w ~ fade / d^falloff``), so the nearest, sharpest camera dominates away from seams.
+    """
+
+    def __init__(self, rig: Rig, spec: BEVSpec | None = None, cameras: Sequence[str] | None = None,
+                 edge_px: float = 24.0, falloff: float = 4.0, dtype: torch.dtype = torch.float32) -> None:
+        self.rig = rig
+        self.spec = spec or rig.bev
+        self.cameras = list(cameras) if cameras is not None else rig.names
+        unknown = [c for c in self.cameras if c not in rig.cameras]
+        if unknown:
+            raise ValueError(f"IPM: unknown cameras {unknown}; the rig has {rig.names}")
+        self.dtype = dtype
+        s = self.spec
+        v, u = torch.meshgrid(torch.arange(s.height, dtype=torch.float64),
+                              torch.arange(s.width, dtype=torch.float64), indexing="ij")
+        xy = s.pixel_to_ground(torch.stack([u, v], dim=-1))
+        ground = torch.cat([xy, torch.zeros_like(xy[..., :1])], dim=-1)
+
+        self.pixel_coords: dict[str, Tensor] = {}
+        raw: dict[str, Tensor] = {}
+        for name in self.cameras:
+            cam = rig.cameras[name]
+            p_cam = transform_points(invert_transform(cam.T_vehicle_camera), ground)
+            uv, valid = cam.model.project(p_cam)
+            raw[name] = self._weight(cam.model, p_cam, uv, valid, edge_px, falloff)
+            self.pixel_coords[name] = uv
+        total = torch.stack(list(raw.values())).sum(0)
+        seen = total > 0
+        if s.ego_box is not None:
+            x0, x1, y0, y1 = s.ego_box
+            seen &= ~((xy[..., 0] >= x0) & (xy[..., 0] <= x1) & (xy[..., 1] >= y0) & (xy[..., 1] <= y1))
+        self.mask = seen
+        safe_total = torch.where(seen, total, torch.ones_like(total))
+        self.weights = {n: torch.where(seen, w / safe_total, torch.zeros_like(w)).to(dtype) for n, w in raw.items()}
+        self._grids = {n: _to_grid(self.pixel_coords[n], rig.cameras[n].model.width,
+                                   rig.cameras[n].model.height).to(dtype).unsqueeze(0)
+                       for n in self.cameras}
+        self._back: dict[str, tuple[Tensor, Tensor]] = {}
+
+    @staticmethod
+    def _weight(model, p_cam: Tensor, uv: Tensor, valid: Tensor, edge_px: float, falloff: float) -> Tensor:
+        """Smooth, non-negative weight: zero outside the view, fading over ``edge_px`` at every edge."""
+        border = torch.stack([uv[..., 0] + 0.5, model.width - 0.5 - uv[..., 0],
+                              uv[..., 1] + 0.5, model.height - 0.5 - uv[..., 1]], dim=-1).amin(-1)
+        focal = float(torch.sqrt(model.fx * model.fy))
+        theta = model.theta_of(p_cam).clamp(max=model.theta_max)
+        lens = (model.rho_max - model.rho(theta, model.k.to(theta))) * focal  # pixels to the lens' valid edge
+        fade = _smoothstep(border / edge_px) * _smoothstep(lens / edge_px)
+        dist = p_cam.norm(dim=-1).clamp_min(1e-6)
+        return torch.where(valid, fade / dist ** falloff, torch.zeros_like(dist))
+
+    def _check(self, images: Mapping[str, Tensor]) -> None:
+        missing = [c for c in self.cameras if c not in images]
+        if missing:
+            raise ValueError(f"IPM needs images for cameras {self.cameras}; missing {missing}")
+        for name in self.cameras:
+            img, model = images[name], self.rig.cameras[name].model
+            hw = tuple(img.shape[-3:-1]) if img.ndim >= 3 else tuple(img.shape)
+            if hw != (model.height, model.width):
+                raise ValueError(f"image for camera {name!r} is {hw[1]}x{hw[0]} (WxH) but the rig says "
+                                 f"{model.width}x{model.height}")
+
+    def __call__(self, images: Mapping[str, Tensor]) -> Tensor:
+        """Blend the cameras' images (HxWxC, HxW or BxHxWxC) into the BEV (same layout)."""
+        self._check(images)
+        out = None
+        for name in self.cameras:
+            x, batched, squeeze_c = _as_nchw(images[name])
+            grid = self._grids[name].to(x.dtype).expand(x.shape[0], -1, -1, -1)
+            sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+            term = sampled * self.weights[name].to(x.dtype)
+            out = term if out is None else out + term
+        return _from_nchw(out, batched, squeeze_c)
+
+    def _back_grid(self, name: str) -> tuple[Tensor, Tensor]:
+        """Per fisheye pixel: where its ray meets the ground in the BEV (grid) and whether it does."""
+        if name not in self._back:
+            cam = self.rig.cameras[name]
+            m = cam.model
+            v, u = torch.meshgrid(torch.arange(m.height, dtype=torch.float64),
+                                  torch.arange(m.width, dtype=torch.float64), indexing="ij")
+            uv = torch.stack([u, v], dim=-1)
+            rays = cam.model.unproject(uv) @ cam.T_vehicle_camera[:3, :3].T
+            origin = cam.T_vehicle_camera[:3, 3]
+            down = rays[..., 2] < -1e-9
+            s = torch.where(down, -origin[2] / torch.where(down, rays[..., 2], -torch.ones_like(rays[..., 2])),
+                            torch.zeros_like(rays[..., 2]))
+            hit = origin[:2] + s.unsqueeze(-1) * rays[..., :2]
+            bev_uv = self.spec.ground_to_pixel(hit)
+            inside = ((bev_uv[..., 0] >= -0.5) & (bev_uv[..., 0] <= self.spec.width - 0.5)
+                      & (bev_uv[..., 1] >= -0.5) & (bev_uv[..., 1] <= self.spec.height - 0.5))
+            valid = down & inside & m.pixel_valid(uv)
+            grid = _to_grid(bev_uv, self.spec.width, self.spec.height).to(self.dtype).unsqueeze(0)
+            self._back[name] = (grid, valid)
+        return self._back[name]
+
+    def to_cameras(self, bev_map: Tensor, cameras: Sequence[str] | None = None) -> dict[str, Tensor]:
+        """Back-project a BEV map (HxW, HxWxC or BxHxWxC) into each camera: each pixel's ray
+        meets the ground and looks the map up there; pixels whose ray misses the BEV get 0."""
+        expected = (self.spec.height, self.spec.width)
+        hw = tuple(bev_map.shape[-3:-1]) if bev_map.ndim >= 3 else tuple(bev_map.shape)
+        if hw != expected:
+            raise ValueError(f"BEV map is {hw[1]}x{hw[0]} (WxH) but the BEV spec is {expected[1]}x{expected[0]}")
+        x, batched, squeeze_c = _as_nchw(bev_map)
+        out = {}
+        for name in cameras or self.cameras:
+            grid, valid = self._back_grid(name)
+            grid = grid.to(x.dtype).expand(x.shape[0], -1, -1, -1)
+            sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+            out[name] = _from_nchw(sampled * valid.to(x.dtype), batched, squeeze_c)
+        return out
