@@ -1,0 +1,153 @@
+"""The Gaussian scene (means, rotations, scales, opacities, SH colours) and its PLY I/O.
+
+Parameters are stored as 3DGS optimises them: unnormalised wxyz quaternions, log scales,
+opacity logits and SH coefficients ``[N, K, 3]`` with ``K = (sh_degree + 1)^2``. Files use
+the INRIA 3DGS PLY layout so standard splat viewers open them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["GaussianScene", "PLYFormatError", "SH_C0"]
+
+SH_C0 = 0.28209479177387814
+"""Degree-0 SH basis constant: colour = SH_C0 * f_dc + 0.5."""
+
+_MAX_SH_DEGREE = 3
+
+
+class PLYFormatError(ValueError):
+    """A Gaussian PLY file is unreadable, incomplete or holds non-finite values; the message names the file and field."""
+
+
+def _degree_of(k: int) -> int | None:
+    """SH degree with ``(deg+1)^2 == k``, or None."""
+    d = math.isqrt(k) - 1
+    return d if (d + 1) ** 2 == k and 0 <= d <= _MAX_SH_DEGREE else None
+
+
+@dataclass
+class GaussianScene:
+    """N anisotropic 3D Gaussians in world coordinates (tensors share dtype and device)."""
+
+    means: Tensor            # [N, 3] world positions (m)
+    quats: Tensor            # [N, 4] rotation, wxyz, any non-zero norm
+    log_scales: Tensor       # [N, 3] log standard deviations along the rotated axes
+    opacity_logits: Tensor   # [N]    sigmoid gives opacity
+    sh: Tensor               # [N, K, 3] SH coefficients, K = (sh_degree + 1)^2
+    sh_degree: int
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        expected = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,),
+                    "sh": (n, (self.sh_degree + 1) ** 2, 3)}
+        if _degree_of((self.sh_degree + 1) ** 2) is None:
+            raise ValueError(f"GaussianScene: sh_degree must be in 0..{_MAX_SH_DEGREE}, got {self.sh_degree}")
+        for name, shape in expected.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise ValueError(f"GaussianScene: {name} must have shape {shape}, got {got}")
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def _tensors(self) -> dict[str, Tensor]:
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sh_degree"}
+
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "GaussianScene":
+        """A copy with every tensor cast (autograd flows through the cast)."""
+        return GaussianScene(**{k: v.to(dtype=dtype, device=device) for k, v in self._tensors().items()},
+                             sh_degree=self.sh_degree)
+
+    def subset(self, mask: Tensor) -> "GaussianScene":
+        """The Gaussians selected by a boolean mask or an index tensor."""
+        return GaussianScene(**{k: v[mask] for k, v in self._tensors().items()}, sh_degree=self.sh_degree)
+
+    @classmethod
+    def random(cls, n: int, bounds: Sequence[Sequence[float]] = ((-5, -5, 0), (5, 5, 2)), sh_degree: int = 0,
+               seed: int = 0, scale_range: tuple[float, float] = (0.02, 0.2),
+               dtype: torch.dtype = torch.float32) -> "GaussianScene":
+        """Random Gaussians uniform in the box ``bounds = (lo, hi)``: for tests and benchmarks."""
+        g = torch.Generator().manual_seed(seed)
+        lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in bounds)
+        means = lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64)
+        log_lo, log_hi = math.log(scale_range[0]), math.log(scale_range[1])
+        log_scales = log_lo + (log_hi - log_lo) * torch.rand(n, 3, generator=g, dtype=torch.float64)
+        sh = 0.3 * torch.randn(n, (sh_degree + 1) ** 2, 3, generator=g, dtype=torch.float64)
+        sh[:, 0] = (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) / SH_C0
+        return cls(means.to(dtype), torch.randn(n, 4, generator=g, dtype=torch.float64).to(dtype),
+                   log_scales.to(dtype), (2 * torch.randn(n, generator=g, dtype=torch.float64)).to(dtype),
+                   sh.to(dtype), sh_degree)
+
+    # --- PLY I/O ------------------------------------------------------------------------
+    def save_ply(self, path: str | Path) -> None:
+        """Write the INRIA 3DGS layout (float32; f_rest channel-major as INRIA writes it)."""
+        from plyfile import PlyData, PlyElement
+
+        n, k = len(self), self.sh.shape[1]
+        t = {name: v.detach().to("cpu", torch.float32).numpy() for name, v in self._tensors().items()}
+        rest = t["sh"][:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
+        columns = [t["means"], np.zeros((n, 3), np.float32), t["sh"][:, 0, :], rest,
+                   t["opacity_logits"][:, None], t["log_scales"], t["quats"]]
+        names = _ply_names(k)
+        data = np.empty(n, dtype=[(name, "f4") for name in names])
+        for name, col in zip(names, np.concatenate(columns, axis=1).T):
+            data[name] = col
+        PlyData([PlyElement.describe(data, "vertex")]).write(str(path))
+
+    @classmethod
+    def load_ply(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "GaussianScene":
+        """Read the INRIA 3DGS layout; missing or non-finite fields raise ``PLYFormatError``."""
+        from plyfile import PlyData
+
+        path = Path(path)
+        if not path.is_file():
+            raise PLYFormatError(f"Gaussian PLY not found: {path}")
+        try:
+            ply = PlyData.read(str(path))
+        except Exception as e:  # plyfile raises several types for corrupt files; all mean "unreadable"
+            raise PLYFormatError(f"{path}: not a readable PLY file ({type(e).__name__}: {e})") from None
+        if "vertex" not in [el.name for el in ply.elements]:
+            raise PLYFormatError(f"{path}: no 'vertex' element")
+        vertex = ply["vertex"]
+        present = {p.name for p in vertex.properties}
+        n_rest = sum(1 for p in present if p.startswith("f_rest_"))
+        if n_rest % 3 or _degree_of(n_rest // 3 + 1) is None:
+            raise PLYFormatError(f"{path}: {n_rest} f_rest_* fields do not match an SH degree 0..{_MAX_SH_DEGREE}")
+        k = n_rest // 3 + 1
+        needed = [name for name in _ply_names(k) if not name.startswith("n")]
+        missing = [name for name in needed if name not in present]
+        if missing:
+            raise PLYFormatError(f"{path}: missing field(s) {missing}")
+        cols = {}
+        for name in needed:
+            col = np.asarray(vertex[name], dtype=np.float64)
+            bad = ~np.isfinite(col)
+            if bad.any():
+                raise PLYFormatError(f"{path}: field {name!r} has {int(bad.sum())} non-finite value(s), "
+                                     f"first at vertex {int(np.argmax(bad))}")
+            cols[name] = col
+        stack = lambda names: torch.from_numpy(np.stack([cols[x] for x in names], axis=1))  # noqa: E731
+        n = len(vertex.data)
+        dc = stack([f"f_dc_{i}" for i in range(3)])
+        rest = torch.from_numpy(np.stack([cols[f"f_rest_{i}"] for i in range(n_rest)], axis=1)
+                                if n_rest else np.zeros((n, 0))).reshape(n, 3, k - 1).transpose(1, 2)
+        scene = cls(stack(["x", "y", "z"]), stack([f"rot_{i}" for i in range(4)]),
+                    stack([f"scale_{i}" for i in range(3)]), torch.from_numpy(cols["opacity"]),
+                    torch.cat([dc[:, None, :], rest], dim=1), _degree_of(k))
+        return scene.to(dtype)
+
+
+def _ply_names(k: int) -> list[str]:
+    """INRIA 3DGS vertex fields in file order for ``k`` SH coefficients per channel."""
+    return (["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)]
+            + [f"f_rest_{i}" for i in range(3 * (k - 1))] + ["opacity"]
+            + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)])

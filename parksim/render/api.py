@@ -1,0 +1,112 @@
+"""``render()``: a Gaussian scene seen by (some of) the rig's cameras at an ego pose, plus the BEV.
+
+Per requested camera: world -> camera transform, cull + project (``projection``), SH colour for
+the survivors only, rasterize. The BEV is the IPM of the rendered views, built only when asked.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from ..geometry import as_pose, invert_transform
+from ..gaussians import GaussianScene
+from ..ipm import IPM
+from ..rig import Rig, RigCamera
+from .projection import UTParams, project_gaussians
+from .rasterize import rasterize
+from .sh import eval_sh
+
+__all__ = ["render", "RenderResult"]
+
+_VIEW_CACHE_SIZE = 8
+_MIN_ALPHA_FOR_DEPTH = 1e-4
+
+
+@dataclass
+class RenderResult:
+    """Per-camera ``images`` (HxWx3 in [0,1]), ``alpha`` (HxW), ``depth`` and optional ``bev`` (HxWx3).
+
+    ``depth`` is the alpha-normalised expected distance from the camera centre (0 where nothing is hit).
+    """
+
+    images: dict[str, Tensor]
+    alpha: dict[str, Tensor]
+    depth: dict[str, Tensor]
+    bev: Tensor | None = None
+
+
+@dataclass
+class _RigView:
+    """The requested cameras of a rig at one scale, and their IPM once a BEV has been asked for."""
+
+    rig: Rig
+    ipm: IPM | None = None
+
+
+_VIEWS: "OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]]" = OrderedDict()
+
+
+def _rig_view(rig: Rig, scale: float, names: tuple[str, ...]) -> _RigView:
+    """Cached scaled sub-rig (keyed by rig identity: rigs are treated as immutable once rendered)."""
+    key = (id(rig), scale, names)
+    hit = _VIEWS.get(key)
+    if hit is not None and hit[0]() is rig:
+        _VIEWS.move_to_end(key)
+        return hit[1]
+    cams = {n: rig.cameras[n] if scale == 1.0 else
+            RigCamera(n, rig.cameras[n].model.scaled(scale), rig.cameras[n].T_vehicle_camera) for n in names}
+    view = _RigView(Rig(cams, rig.bev))
+    _VIEWS[key] = (weakref.ref(rig), view)
+    while len(_VIEWS) > _VIEW_CACHE_SIZE:
+        _VIEWS.popitem(last=False)
+    return view
+
+
+def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
+           bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
+           method: str = "ut", ut_params: UTParams | None = None) -> RenderResult:
+    """Render ``cameras`` (default: all of the rig) at ``pose`` (4x4 ``T_world_vehicle`` or ``(x, y, yaw)``).
+
+    Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend.
+    ``bev=True`` adds the IPM of the rendered views (the rig's BEV spec).
+    """
+    names = tuple(cameras) if cameras is not None else tuple(rig.names)
+    unknown = [n for n in names if n not in rig.cameras]
+    if unknown:
+        raise KeyError(f"render: unknown camera(s) {unknown}; the rig has {rig.names}")
+    if not scale > 0:
+        raise ValueError(f"render: scale must be positive, got {scale}")
+    view = _rig_view(rig, float(scale), names)
+    dtype = scene.means.dtype
+    T_world_vehicle = as_pose(pose)
+    opacity = torch.sigmoid(scene.opacity_logits)
+    background = torch.as_tensor(bg, dtype=dtype)
+    images, alphas, depths = {}, {}, {}
+    for name in names:
+        cam = view.rig.cameras[name]
+        T_world_camera = T_world_vehicle @ cam.T_vehicle_camera
+        T_camera_world = invert_transform(T_world_camera).to(dtype)
+        R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
+        proj = project_gaussians(scene.means @ R.T + t, (scene.quats, scene.log_scales, R), cam.model,
+                                 method=method, ut_params=ut_params)
+        keep = proj.index[proj.valid]
+        dirs = scene.means[keep] - T_world_camera[:3, 3].to(dtype)
+        colors = eval_sh(scene.sh[keep], dirs / dirs.norm(dim=-1, keepdim=True), scene.sh_degree)
+        v = proj.valid
+        images[name], alphas[name], depth_sum = rasterize(
+            proj.means2d[v], proj.conics[v], colors, opacity[keep], proj.depths[v],
+            cam.model.width, cam.model.height, backend=backend, bg=background)
+        covered = alphas[name] > _MIN_ALPHA_FOR_DEPTH
+        depths[name] = torch.where(covered, depth_sum / torch.where(covered, alphas[name], 1.0), 0.0)
+    bev_image = None
+    if bev:
+        if view.ipm is None:
+            view.ipm = IPM(view.rig, rig.bev)
+        bev_image = view.ipm(images)
+    return RenderResult(images, alphas, depths, bev_image)
