@@ -12,7 +12,7 @@ import importlib
 import sys
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "ipm"]
+COMMANDS = ["demo", "synth", "ipm"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -235,7 +235,7 @@ def read_opencv_yaml(path: str | Path) -> dict[str, Any]:
         raise CalibrationError(f"calibration file not found: {path}")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
+    except (cv2.error, SystemError) as e:  # OpenCV's parser errors surface as either
         raise CalibrationError(f"{path}: not a readable OpenCV YAML file ({str(e).strip().splitlines()[-1]})") from None
     if not fs.isOpened():
         raise CalibrationError(f"{path}: not a readable OpenCV YAML file")

@@ -1,0 +1,99 @@
+"""The dataset directory layout: every path and file name, defined once for writer and reader.
+
+```
+rig.json                      Rig.save: cameras (intrinsics, T_vehicle_camera) and the BEV spec
+poses.json                    {"frames": [{"frame", "timestamp", "T_world_vehicle" (4x4)}]}
+images/<camera>/<frame>.png   uint8 RGB fisheye images
+ipm/<frame>.png               uint8 RGB ground-truth BEV (IPM of the ground-truth images), optional
+labels/<frame>.json           DMPR-PS slot labels in BEV pixels, optional
+depth/<camera>/<frame>.png    uint16 distance along the ray in mm (0 = none), optional
+map.json                      world-frame slots, marking points and obstacles, optional
+points3d.ply                  sparse initial point cloud (x, y, z, normals, RGB), optional
+split.json                    {"train": [frames], "test": [frames]}, optional
+meta.json                     generator, preset, seed, version, resolution, optional
+```
+Frames are named by their integer id, zero-padded to six digits.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["DatasetLayout", "DatasetError", "frame_name", "DEPTH_SCALE", "LAYOUT_VERSION"]
+
+LAYOUT_VERSION = 1
+"""Bumped when the layout changes incompatibly; written to meta.json."""
+DEPTH_SCALE = 1000.0
+"""Depth PNG units per metre (millimetres)."""
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing, unreadable or inconsistent; ``path`` names the file."""
+
+    def __init__(self, path: str | Path, message: str) -> None:
+        self.path = Path(path)
+        super().__init__(f"{path}: {message}")
+
+
+def frame_name(frame: int) -> str:
+    """File stem of a frame id: ``7 -> "000007"``."""
+    if frame < 0:
+        raise ValueError(f"frame ids are non-negative, got {frame}")
+    return f"{frame:06d}"
+
+
+class DatasetLayout:
+    """Paths inside one dataset directory."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    @property
+    def rig(self) -> Path:
+        return self.root / "rig.json"
+
+    @property
+    def poses(self) -> Path:
+        return self.root / "poses.json"
+
+    @property
+    def split(self) -> Path:
+        return self.root / "split.json"
+
+    @property
+    def meta(self) -> Path:
+        return self.root / "meta.json"
+
+    @property
+    def map(self) -> Path:
+        return self.root / "map.json"
+
+    @property
+    def points(self) -> Path:
+        return self.root / "points3d.ply"
+
+    def image_dir(self, camera: str) -> Path:
+        return self.root / "images" / camera
+
+    def image(self, camera: str, frame: int) -> Path:
+        return self.image_dir(camera) / f"{frame_name(frame)}.png"
+
+    @property
+    def ipm_dir(self) -> Path:
+        return self.root / "ipm"
+
+    def ipm(self, frame: int) -> Path:
+        return self.ipm_dir / f"{frame_name(frame)}.png"
+
+    @property
+    def labels_dir(self) -> Path:
+        return self.root / "labels"
+
+    def labels(self, frame: int) -> Path:
+        return self.labels_dir / f"{frame_name(frame)}.json"
+
+    def depth_dir(self, camera: str) -> Path:
+        return self.root / "depth" / camera
+
+    def depth(self, camera: str, frame: int) -> Path:
+        return self.depth_dir(camera) / f"{frame_name(frame)}.png"

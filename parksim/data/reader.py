@@ -1,0 +1,227 @@
+"""Reads a dataset directory lazily (images on demand) and checks it, naming the offending file."""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..rig import CalibrationError, Rig
+from .layout import DEPTH_SCALE, DatasetError, DatasetLayout
+
+__all__ = ["DatasetReader"]
+
+
+def _read_json(path: Path) -> Any:
+    if not path.is_file():
+        raise DatasetError(path, "file not found")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(path, f"not valid JSON: {e}") from None
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise DatasetError(path, "file not found")
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise DatasetError(path, "cannot decode PNG (corrupt or truncated file)")
+    return img
+
+
+class DatasetReader:
+    """A dataset directory: ``rig``, ``poses``, ``frames``, ``split`` and per-frame items on demand.
+
+    Opening checks the rig, the poses and that every frame has an image for every camera
+    (existence only, cheap); ``validate(deep=True)`` also decodes every file.
+    """
+
+    def __init__(self, root: str | Path, validate: bool = True) -> None:
+        self.layout = DatasetLayout(root)
+        if not self.layout.root.is_dir():
+            raise DatasetError(self.layout.root, "dataset directory not found")
+        if validate:
+            self.validate()
+
+    # --- scene-level items -------------------------------------------------------------
+    @cached_property
+    def rig(self) -> Rig:
+        try:
+            return Rig.load(self.layout.rig)
+        except CalibrationError as e:
+            raise DatasetError(self.layout.rig, str(e)) from None
+
+    @cached_property
+    def _pose_table(self) -> tuple[list[int], Tensor, list[float]]:
+        path = self.layout.poses
+        data = _read_json(path)
+        try:
+            entries = data["frames"]
+            frames = [int(e["frame"]) for e in entries]
+            poses = torch.tensor([e["T_world_vehicle"] for e in entries], dtype=torch.float64).reshape(-1, 4, 4)
+            stamps = [float(e["timestamp"]) for e in entries]
+        except (KeyError, TypeError, ValueError, RuntimeError) as e:
+            raise DatasetError(path, f"expected {{'frames': [{{frame, timestamp, T_world_vehicle 4x4}}]}}: {e}") from None
+        if len(set(frames)) != len(frames):
+            raise DatasetError(path, "duplicate frame ids")
+        if not torch.isfinite(poses).all():
+            raise DatasetError(path, "non-finite pose values")
+        return frames, poses, stamps
+
+    @property
+    def frames(self) -> list[int]:
+        """Frame ids in pose order."""
+        return self._pose_table[0]
+
+    @property
+    def poses(self) -> Tensor:
+        """T_world_vehicle per frame, ``[N, 4, 4]`` float64."""
+        return self._pose_table[1]
+
+    @property
+    def timestamps(self) -> list[float]:
+        return self._pose_table[2]
+
+    def pose(self, frame: int) -> Tensor:
+        return self.poses[self._index(frame)]
+
+    @cached_property
+    def split(self) -> dict[str, list[int]]:
+        """``{"train": [...], "test": [...]}``; all frames are train when there is no split file."""
+        if not self.layout.split.is_file():
+            return {"train": list(self.frames), "test": []}
+        data = _read_json(self.layout.split)
+        known = set(self.frames)
+        for key in ("train", "test"):
+            unknown = sorted(set(data.get(key, [])) - known)
+            if unknown:
+                raise DatasetError(self.layout.split, f"{key} lists frames without a pose: {unknown[:5]}")
+        return {"train": list(data.get("train", [])), "test": list(data.get("test", []))}
+
+    @cached_property
+    def meta(self) -> dict[str, Any]:
+        return _read_json(self.layout.meta) if self.layout.meta.is_file() else {}
+
+    @cached_property
+    def map(self) -> dict[str, Any]:
+        """World-frame slots and obstacles (map.json)."""
+        return _read_json(self.layout.map)
+
+    @cached_property
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sparse point cloud: positions ``[N, 3]`` float32 and colours ``[N, 3]`` uint8."""
+        from plyfile import PlyData
+
+        path = self.layout.points
+        if not path.is_file():
+            raise DatasetError(path, "file not found")
+        try:
+            v = PlyData.read(str(path))["vertex"]
+            xyz = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float32)
+            rgb = np.stack([v["red"], v["green"], v["blue"]], 1).astype(np.uint8)
+        except (KeyError, ValueError, IndexError, EOFError) as e:
+            raise DatasetError(path, f"not a point-cloud PLY with x, y, z, red, green, blue: {e}") from None
+        return xyz, rgb
+
+    @property
+    def has_ipm(self) -> bool:
+        return self.layout.ipm_dir.is_dir()
+
+    @property
+    def has_labels(self) -> bool:
+        return self.layout.labels_dir.is_dir()
+
+    # --- per-frame items ---------------------------------------------------------------
+    def _index(self, frame: int) -> int:
+        try:
+            return self.frames.index(frame)
+        except ValueError:
+            raise DatasetError(self.layout.poses, f"no pose for frame {frame}") from None
+
+    def image(self, camera: str, frame: int) -> Tensor:
+        """Fisheye image as float32 RGB in [0, 1], HxWx3."""
+        if camera not in self.rig.cameras:
+            raise DatasetError(self.layout.rig, f"no camera {camera!r}; the rig has {self.rig.names}")
+        self._index(frame)
+        path = self.layout.image(camera, frame)
+        img = _imread(path, cv2.IMREAD_COLOR)
+        m = self.rig.cameras[camera].model
+        if img.shape[:2] != (m.height, m.width):
+            raise DatasetError(path, f"image is {img.shape[1]}x{img.shape[0]} but the rig says {m.width}x{m.height}")
+        return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
+
+    def ipm(self, frame: int) -> Tensor:
+        """Ground-truth BEV image as float32 RGB in [0, 1], HxWx3."""
+        self._index(frame)
+        path = self.layout.ipm(frame)
+        img = _imread(path, cv2.IMREAD_COLOR)
+        bev = self.rig.bev
+        if img.shape[:2] != (bev.height, bev.width):
+            raise DatasetError(path, f"BEV image is {img.shape[1]}x{img.shape[0]} but the BEV spec is {bev.width}x{bev.height}")
+        return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
+
+    def depth(self, camera: str, frame: int) -> Tensor:
+        """Distance along each pixel's ray in metres (0 = no depth), float32 HxW."""
+        self._index(frame)
+        path = self.layout.depth(camera, frame)
+        d = _imread(path, cv2.IMREAD_UNCHANGED)
+        if d.dtype != np.uint16 or d.ndim != 2:
+            raise DatasetError(path, f"depth must be a single-channel 16-bit PNG, got {d.dtype} with shape {d.shape}")
+        return torch.from_numpy(d.astype(np.float32) / DEPTH_SCALE)
+
+    def labels(self, frame: int) -> dict[str, Any]:
+        """Slot labels (DMPR-PS form, BEV pixels); checked to lie inside the BEV and to reference real points."""
+        self._index(frame)
+        path = self.layout.labels(frame)
+        data = _read_json(path)
+        bev = self.rig.bev
+        try:
+            marks, slots = data["marks"], data["slots"]
+            for i, m in enumerate(marks):
+                x, y = float(m["x"]), float(m["y"])
+                if not (-0.5 <= x <= bev.width - 0.5 and -0.5 <= y <= bev.height - 0.5):
+                    raise DatasetError(path, f"marking point {i} at ({x:.1f}, {y:.1f}) lies outside the "
+                                             f"{bev.width}x{bev.height} BEV")
+                if m["shape"] not in ("T", "L"):
+                    raise DatasetError(path, f"marking point {i} has shape {m['shape']!r}; expected 'T' or 'L'")
+            for j, s in enumerate(slots):
+                for key in ("p1", "p2"):
+                    if not 0 <= int(s[key]) < len(marks):
+                        raise DatasetError(path, f"slot {j} {key}={s[key]} is not one of the {len(marks)} marking points")
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, DatasetError):
+                raise
+            raise DatasetError(path, f"malformed labels: {e!r}") from None
+        return data
+
+    # --- checks --------------------------------------------------------------------------
+    def validate(self, deep: bool = False) -> None:
+        """Check the layout: rig, poses, one image per camera and frame, no strays; ``deep`` decodes all files."""
+        rig, frames = self.rig, self.frames
+        for camera in rig.names:
+            folder = self.layout.image_dir(camera)
+            if not folder.is_dir():
+                raise DatasetError(folder, f"image folder for camera {camera!r} not found")
+            for f in frames:
+                if not self.layout.image(camera, f).is_file():
+                    raise DatasetError(self.layout.image(camera, f), f"missing image for frame {f}")
+            count = sum(1 for _ in folder.glob("*.png"))
+            if count != len(frames):
+                raise DatasetError(self.layout.poses, f"{len(frames)} poses but {count} images in {folder}")
+        if self.layout.split.is_file():
+            _ = self.split
+        if deep:
+            for f in frames:
+                for camera in rig.names:
+                    self.image(camera, f)
+                if self.has_ipm:
+                    self.ipm(f)
+                if self.has_labels:
+                    self.labels(f)

@@ -1,0 +1,118 @@
+"""Writes a dataset directory in the layout of ``parksim.data.layout``; ``atomic_dir`` makes it all-or-nothing."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+import cv2
+import numpy as np
+
+from ..rig import Rig
+from .layout import DEPTH_SCALE, DatasetError, DatasetLayout
+
+__all__ = ["DatasetWriter", "atomic_dir", "to_uint8"]
+
+
+def to_uint8(image: Any) -> np.ndarray:
+    """Float image in [0, 1] (numpy or torch, HxWx3) -> uint8, rounded."""
+    arr = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
+    return np.clip(np.rint(arr * 255.0), 0, 255).astype(np.uint8)
+
+
+@contextlib.contextmanager
+def atomic_dir(target: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a fresh temp dir next to ``target``; on success rename it to ``target``, else delete it.
+
+    A killed run leaves only a ``.<name>.tmp-*`` folder, never a half-written ``target``.
+    """
+    target = Path(target)
+    if target.exists() and not overwrite:
+        raise FileExistsError(f"{target} already exists (pass overwrite to replace it)")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if target.exists():
+        old = target.with_name(f".{target.name}.old-{os.getpid()}")
+        target.rename(old)
+        tmp.rename(target)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(target)
+
+
+def _write_json(path: Path, data: Any) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+
+
+def _imwrite(path: Path, image: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), image):
+        raise DatasetError(path, "could not write image")
+
+
+class DatasetWriter:
+    """One method per dataset item; paths come from ``DatasetLayout``."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.layout = DatasetLayout(root)
+        self.layout.root.mkdir(parents=True, exist_ok=True)
+
+    def rig(self, rig: Rig) -> None:
+        rig.save(self.layout.rig)
+
+    def poses(self, poses: np.ndarray, timestamps: Sequence[float], frames: Sequence[int] | None = None) -> None:
+        """``poses[N, 4, 4]`` T_world_vehicle with their timestamps (s); frame ids default to 0..N-1."""
+        frames = list(range(len(poses))) if frames is None else list(frames)
+        if not len(frames) == len(poses) == len(timestamps):
+            raise ValueError(f"{len(poses)} poses, {len(timestamps)} timestamps and {len(frames)} frame ids")
+        _write_json(self.layout.poses, {"frames": [
+            {"frame": int(f), "timestamp": float(t), "T_world_vehicle": np.asarray(T, np.float64).tolist()}
+            for f, t, T in zip(frames, timestamps, poses)]})
+
+    def image(self, camera: str, frame: int, image: Any) -> None:
+        """Float RGB [0, 1] HxWx3 -> uint8 PNG."""
+        _imwrite(self.layout.image(camera, frame), cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
+
+    def ipm(self, frame: int, image: Any) -> None:
+        _imwrite(self.layout.ipm(frame), cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
+
+    def depth(self, camera: str, frame: int, depth_m: np.ndarray) -> None:
+        """Distance along the ray (m; 0 = none) -> uint16 PNG in millimetres, clipped at 65.535 m."""
+        mm = np.clip(np.rint(np.asarray(depth_m) * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+        _imwrite(self.layout.depth(camera, frame), mm)
+
+    def labels(self, frame: int, labels: Mapping[str, Any]) -> None:
+        _write_json(self.layout.labels(frame), {"frame": int(frame), **labels})
+
+    def map(self, scene_map: Mapping[str, Any]) -> None:
+        _write_json(self.layout.map, scene_map)
+
+    def split(self, train: Sequence[int], test: Sequence[int]) -> None:
+        _write_json(self.layout.split, {"train": [int(f) for f in train], "test": [int(f) for f in test]})
+
+    def meta(self, meta: Mapping[str, Any]) -> None:
+        _write_json(self.layout.meta, meta)
+
+    def points(self, xyz: np.ndarray, rgb: np.ndarray, normals: np.ndarray) -> None:
+        """Sparse point cloud as binary PLY: x, y, z, nx, ny, nz (float32), red, green, blue (uint8)."""
+        from plyfile import PlyData, PlyElement
+
+        names = ("x", "y", "z", "nx", "ny", "nz")
+        dtype = [(n, "f4") for n in names] + [(c, "u1") for c in ("red", "green", "blue")]
+        data = np.empty(len(xyz), dtype=dtype)
+        for i, n in enumerate(names):
+            data[n] = (xyz if i < 3 else normals)[:, i % 3]
+        for i, c in enumerate(("red", "green", "blue")):
+            data[c] = rgb[:, i]
+        PlyData([PlyElement.describe(data, "vertex")]).write(str(self.layout.points))

@@ -1,0 +1,148 @@
+"""Dataset layout: the reader round-trips what the writer wrote, and bad inputs give named errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from parksim.data import DatasetError, DatasetLayout, DatasetReader, DatasetWriter, atomic_dir
+from parksim.synth.rig import avm_rig
+
+W, H, N = 64, 48, 3
+
+
+def _labels() -> dict:
+    return {"bev": {"width": 100, "height": 100, "m_per_px": 0.1},
+            "marks": [{"x": 10.0, "y": 20.0, "direction": 1.0, "shape": "T", "id": 0},
+                      {"x": 40.0, "y": 20.5, "direction": 1.0, "shape": "L", "id": 1}],
+            "slots": [{"p1": 0, "p2": 1, "type": "perpendicular", "angle": 90.0, "occupied": False, "id": 0}]}
+
+
+@pytest.fixture()
+def dataset(tmp_path: Path) -> tuple[Path, dict]:
+    """A small dataset written by DatasetWriter, and what was written."""
+    rng = np.random.default_rng(0)
+    rig = avm_rig(W, H, bev_px=100)
+    root = tmp_path / "ds"
+    w = DatasetWriter(root)
+    poses = np.tile(np.eye(4), (N, 1, 1))
+    poses[:, 0, 3] = np.arange(N) * 0.2
+    w.rig(rig)
+    w.poses(poses, np.arange(N) / 10)
+    images = {(c, f): rng.random((H, W, 3), dtype=np.float32) for c in rig.names for f in range(N)}
+    depths = {(c, f): rng.uniform(0, 30, (H, W)) for c in rig.names for f in range(N)}
+    for (c, f), img in images.items():
+        w.image(c, f, img)
+        w.depth(c, f, depths[(c, f)])
+    for f in range(N):
+        w.ipm(f, rng.random((100, 100, 3)))
+        w.labels(f, _labels())
+    w.split([1, 2], [0])
+    w.map({"slots": [], "obstacles": []})
+    xyz = rng.normal(size=(50, 3))
+    rgb = rng.integers(0, 256, (50, 3)).astype(np.uint8)
+    w.points(xyz, rgb, np.tile([0.0, 0.0, 1.0], (50, 1)))
+    w.meta({"preset": "test"})
+    return root, {"poses": poses, "images": images, "depths": depths, "xyz": xyz, "rgb": rgb, "rig": rig}
+
+
+def test_round_trip(dataset):
+    root, src = dataset
+    r = DatasetReader(root)
+    r.validate(deep=True)
+    assert r.frames == list(range(N))
+    assert torch.equal(r.poses, torch.from_numpy(src["poses"]))
+    assert r.split == {"train": [1, 2], "test": [0]}
+    assert r.rig.names == src["rig"].names and r.rig.bev == src["rig"].bev
+    for (c, f), img in src["images"].items():
+        got = r.image(c, f).numpy()
+        assert got.shape == (H, W, 3)
+        assert np.abs(got - img).max() <= 0.5 / 255 + 1e-6
+        assert np.abs(r.depth(c, f).numpy() - src["depths"][(c, f)]).max() <= 0.0005 + 1e-6
+    assert r.labels(1)["slots"][0]["type"] == "perpendicular"
+    assert r.ipm(2).shape == (100, 100, 3)
+    xyz, rgb = r.points
+    assert np.allclose(xyz, src["xyz"], atol=1e-6) and np.array_equal(rgb, src["rgb"])
+    assert r.meta == {"preset": "test"} and r.map == {"slots": [], "obstacles": []}
+
+
+def test_missing_frame_names_the_file(dataset):
+    root, _ = dataset
+    missing = DatasetLayout(root).image("left", 1)
+    missing.unlink()
+    with pytest.raises(DatasetError, match="missing image for frame 1") as e:
+        DatasetReader(root)
+    assert e.value.path == missing
+
+
+def test_corrupt_png_names_the_file(dataset):
+    root, _ = dataset
+    path = DatasetLayout(root).image("front", 2)
+    path.write_bytes(path.read_bytes()[:40])
+    r = DatasetReader(root)  # existence checks pass: decoding is lazy
+    with pytest.raises(DatasetError, match="corrupt or truncated") as e:
+        r.image("front", 2)
+    assert e.value.path == path
+    with pytest.raises(DatasetError):
+        r.validate(deep=True)
+
+
+def test_pose_count_mismatch(dataset):
+    root, _ = dataset
+    layout = DatasetLayout(root)
+    data = json.loads(layout.poses.read_text())
+    data["frames"] = data["frames"][:-1]
+    layout.poses.write_text(json.dumps(data))
+    with pytest.raises(DatasetError, match=r"2 poses but 3 images") as e:
+        DatasetReader(root)
+    assert e.value.path == layout.poses
+
+
+def test_labels_outside_bev(dataset):
+    root, _ = dataset
+    layout = DatasetLayout(root)
+    bad = _labels()
+    bad["marks"][1]["x"] = 130.0
+    layout.labels(0).write_text(json.dumps(bad))
+    with pytest.raises(DatasetError, match="marking point 1 .* outside the 100x100 BEV") as e:
+        DatasetReader(root).labels(0)
+    assert e.value.path == layout.labels(0)
+
+
+def test_bad_poses_and_rig(dataset, tmp_path):
+    root, _ = dataset
+    layout = DatasetLayout(root)
+    layout.poses.write_text("{not json")
+    with pytest.raises(DatasetError, match="not valid JSON") as e:
+        DatasetReader(root)
+    assert e.value.path == layout.poses
+    other = tmp_path / "norig"
+    shutil.copytree(root, other)
+    DatasetLayout(other).rig.unlink()
+    with pytest.raises(DatasetError, match="rig.json"):
+        DatasetReader(other)
+    with pytest.raises(DatasetError, match="dataset directory not found"):
+        DatasetReader(tmp_path / "nothing")
+
+
+def test_atomic_dir_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "scene"
+    with pytest.raises(RuntimeError):
+        with atomic_dir(target) as tmp:
+            (tmp / "poses.json").write_text("{}")
+            raise RuntimeError("killed")
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+    with atomic_dir(target) as tmp:
+        (tmp / "a").write_text("1")
+    assert (target / "a").read_text() == "1"
+    with pytest.raises(FileExistsError):
+        with atomic_dir(target):
+            pass
+    with atomic_dir(target, overwrite=True) as tmp:
+        (tmp / "b").write_text("2")
+    assert sorted(p.name for p in target.iterdir()) == ["b"] and len(list(tmp_path.iterdir())) == 1
