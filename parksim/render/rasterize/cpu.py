@@ -1,0 +1,65 @@
+"""CPU backend: binning + numba kernels wrapped in a torch.autograd.Function (float32 inside)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import kernels
+from .tiles import TileBins, bin_gaussians
+
+
+def _f32(t: Tensor) -> np.ndarray:
+    """Detached, contiguous float32 numpy array of a tensor (copied to the CPU if needed)."""
+    return np.ascontiguousarray(t.detach().cpu().to(torch.float32).numpy())
+
+
+def _heaviest_first(bins: TileBins) -> np.ndarray:
+    """Tile order for round-robin dealing to threads: most intersections first, for load balance."""
+    return np.argsort(-np.diff(bins.offsets), kind="stable")
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    """Forward renders with the tile kernels and keeps (bins, T_final, last index) for the backward."""
+
+    @staticmethod
+    def forward(ctx: Any, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
+                width: int, height: int, bg: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        inputs = [_f32(t) for t in (means2d, conics, colors, opacities, depths)]
+        bins = bin_gaussians(*inputs, width, height)
+        order = _heaviest_first(bins)
+        rgb = np.empty((height, width, 3), np.float32)
+        depth = np.empty((height, width), np.float32)
+        t_final = np.empty((height, width), np.float32)
+        last = np.empty((height, width), np.int64)
+        kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
+                        width, height, rgb, depth, t_final, last)
+        bg32 = np.zeros(3, np.float32) if bg is None else _f32(bg).reshape(3)
+        ctx.state = (bins, order, t_final, last, bg32, width, height)
+        ctx.like = [(t.dtype, t.device) for t in (means2d, conics, colors, opacities, depths)]
+        out_rgb = torch.from_numpy(rgb + t_final[..., None] * bg32 if bg is not None else rgb)
+        like = {"dtype": means2d.dtype, "device": means2d.device}
+        return out_rgb.to(**like), torch.from_numpy(1.0 - t_final).to(**like), torch.from_numpy(depth).to(**like)
+
+    @staticmethod
+    def backward(ctx: Any, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
+        bins, order, t_final, last, bg32, width, height = ctx.state
+        grad_isect = np.empty((bins.gauss_ids.shape[0], kernels.N_GRAD), np.float32)
+        kernels.backward(bins.offsets, bins.gauss_ids, bins.slot_of, bins.packed, bins.tiles_x, order,
+                         numba.get_num_threads(), width, height, t_final, last,
+                         _f32(g_rgb), _f32(g_alpha), _f32(g_depth), bg32, grad_isect)
+        grads = np.zeros((bins.packed.shape[0], kernels.N_GRAD), np.float32)
+        kernels.reduce_by_gaussian(bins.starts, grad_isect, grads)
+        out = torch.from_numpy(grads)
+        parts = (out[:, 0:2], out[:, 2:5], out[:, 5:8], out[:, 8], out[:, 9])
+        return (*(p.to(dtype=dtype, device=device) for p, (dtype, device) in zip(parts, ctx.like)), None, None, None)
+
+
+def rasterize_cpu(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
+                  width: int, height: int, bg: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Numba tile rasterizer; same contract as `parksim.render.rasterize.rasterize` (CPU tensors)."""
+    return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, width, height, bg)

@@ -1,0 +1,244 @@
+"""Numba tile kernels: front-to-back forward and back-to-front backward of alpha compositing.
+
+Work is splat-major inside a tile: each Gaussian of the tile's depth-sorted list visits the tile rows its
+alpha-threshold ellipse reaches, updating per-pixel state held in a [7, 256] tile buffer, so every pixel
+still sees its Gaussians in depth order. A row is one fixed-length, branch-free loop (selects, fast exp,
+unsigned indices) that LLVM turns into full-width SIMD. Tiles are dealt to threads round robin, heaviest
+first; the backward writes one gradient row per (tile, Gaussian) intersection and reduces them afterwards,
+so no two threads write the same memory. Ranks (1-based positions in a tile's list) are kept as float32
+in the state buffer, exact up to 2^24 Gaussians per tile.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE
+from .ellipse import fast_exp
+
+N_GRAD = 10
+"""Gradient columns per Gaussian: mean x, y; conic a, b, c; color r, g, b; opacity; depth."""
+
+_A_MIN = np.float32(ALPHA_MIN)
+_A_MAX = np.float32(ALPHA_MAX)
+_T_MIN = np.float32(T_MIN)
+_ZERO = np.float32(0.0)
+_ONE = np.float32(1.0)
+_HALF = np.float32(0.5)
+_PIX = TILE * TILE
+
+
+@numba.njit(inline="always", fastmath=True, cache=True)
+def _pair_alpha(o: np.float32, power: np.float32) -> tuple[np.float32, np.float32]:
+    """(alpha, gaussian) of one pair; alpha is 0 when below ALPHA_MIN, clamped at ALPHA_MAX."""
+    gauss = fast_exp(min(power, _ZERO))
+    alpha = min(_A_MAX, o * gauss)
+    return (alpha if alpha >= _A_MIN else _ZERO), gauss
+
+
+@numba.njit(inline="always", cache=True)
+def _tile_box(tile: int, tiles_x: int, width: int, height: int) -> tuple[int, int, int, int]:
+    """Inclusive pixel bounds (x0, y0, x1, y1) of a tile, clipped to the image."""
+    x0 = (tile % tiles_x) * TILE
+    y0 = (tile // tiles_x) * TILE
+    return x0, y0, min(x0 + TILE, width) - 1, min(y0 + TILE, height) - 1
+
+
+@numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
+def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank) -> np.float32:
+    """Composite one Gaussian over the TILE pixels of a tile row from index i0; returns how many stopped.
+
+    The whole row is evaluated (pixels outside the ellipse fail the alpha test): a fixed trip count lets
+    LLVM turn the loop into a few full-width SIMD operations with no scalar remainder.
+
+    state rows: transmittance, alive flag, accumulated r, g, b, depth, rank of the last contributor.
+    """
+    p0 = -_HALF * c * dy * dy
+    p1 = -b * dy
+    p2 = -_HALF * a
+    stopped = _ZERO
+    for j in range(TILE):
+        i = np.uint64(i0) + np.uint64(j)  # unsigned: no negative-index wraparound, so the loop vectorises
+        dx = dx0 + np.float32(j)
+        alpha, _ = _pair_alpha(o, p0 + dx * (p1 + dx * p2))
+        t = state[0, i]
+        alive = state[1, i]
+        stop = t * (_ONE - alpha) < _T_MIN
+        w = _ZERO if stop else alpha * t * alive
+        state[0, i] = t - w
+        state[2, i] += w * cr
+        state[3, i] += w * cg
+        state[4, i] += w * cb
+        state[5, i] += w * cd
+        state[6, i] = max(state[6, i], rank if w > _ZERO else _ZERO)  # a max, not a conditional store: vectorises
+        stopped += alive if stop else _ZERO
+        state[1, i] = _ZERO if stop else alive
+    return stopped
+
+
+@numba.njit(fastmath=True, error_model="numpy", cache=True)
+def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, state, row_live, rgb_out, depth_out,
+                  t_out, last_out):
+    """Composite one tile front to back, skipping saturated rows and stopping once all pixels are; write it.
+
+    row_live[r] counts the pixels of tile row r still compositing.
+    """
+    x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
+    state[0] = 1.0
+    state[1:] = 0.0
+    row_live[:] = 0.0
+    for py in range(y0, y1 + 1):
+        state[1, (py - y0) * TILE:(py - y0) * TILE + x1 - x0 + 1] = 1.0  # pixels past the image edge start dead
+        row_live[py - y0] = x1 - x0 + 1
+    alive = np.float32((x1 - x0 + 1) * (y1 - y0 + 1))
+    start = offsets[tile]
+    for k in range(start, offsets[tile + 1]):
+        p = packed[gauss_ids[k]]
+        for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
+            if row_live[py - y0] < _HALF:
+                continue
+            stopped = _forward_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
+                                   p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], np.float32(k - start + 1))
+            row_live[py - y0] -= stopped
+            alive -= stopped
+        if alive < _HALF:
+            break
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            i = (py - y0) * TILE + px - x0
+            rgb_out[py, px, 0] = state[2, i]
+            rgb_out[py, px, 1] = state[3, i]
+            rgb_out[py, px, 2] = state[4, i]
+            depth_out[py, px] = state[5, i]
+            t_out[py, px] = state[0, i]
+            last_out[py, px] = start + np.int64(state[6, i]) - 1
+
+
+@numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
+def forward(offsets, gauss_ids, packed, tiles_x, tile_order, n_workers, width, height,
+            rgb_out, depth_out, t_out, last_out):
+    """All tiles dealt over n_workers threads: rgb [H,W,3], expected depth, final T, last contributing index.
+
+    last_out is the global intersection index of a pixel's last contributor, below the tile's start if none.
+    """
+    for worker in numba.prange(n_workers):
+        state = np.empty((7, _PIX), np.float32)
+        row_live = np.empty(TILE, np.float32)
+        for j in range(worker, tile_order.shape[0], n_workers):
+            _forward_tile(tile_order[j], offsets, gauss_ids, packed, tiles_x, width, height, state, row_live,
+                          rgb_out, depth_out, t_out, last_out)
+
+
+@numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
+def _backward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank, sums):
+    """Undo one Gaussian over the TILE pixels of a tile row (back to front); add its gradients into sums.
+
+    state rows: transmittance, rest, dL/d(r, g, b, depth) of the pixel, rank of its last contributor.
+    rest = sum over later Gaussians of (color . dL/dpixel) alpha T, minus the terms reaching the final
+    transmittance (alpha output, background), so that dL/dalpha_k = T_k (c_k . g) - rest / (1 - alpha_k).
+    """
+    p0 = -_HALF * c * dy * dy
+    p1 = -b * dy
+    p2 = -_HALF * a
+    s_mx = s_my = s_a = s_b = s_c = s_r = s_g = s_bl = s_o = s_d = _ZERO
+    for j in range(TILE):
+        i = np.uint64(i0) + np.uint64(j)
+        dx = dx0 + np.float32(j)
+        alpha, gauss = _pair_alpha(o, p0 + dx * (p1 + dx * p2))
+        alpha = alpha if rank <= state[6, i] else _ZERO
+        inv = _ONE / (_ONE - alpha)
+        t = state[0, i] * inv
+        g_r, g_g, g_b, g_d = state[2, i], state[3, i], state[4, i], state[5, i]
+        c_dot_g = cr * g_r + cg * g_g + cb * g_b + cd * g_d
+        rest = state[1, i]
+        d_alpha = t * c_dot_g - rest * inv
+        w = alpha * t
+        state[1, i] = rest + c_dot_g * w
+        state[0, i] = t
+        s_r += w * g_r
+        s_g += w * g_g
+        s_bl += w * g_b
+        s_d += w * g_d
+        d_gauss = d_alpha * gauss if (alpha > _ZERO) & (o * gauss < _A_MAX) else _ZERO
+        d_power = d_gauss * o
+        s_o += d_gauss
+        s_mx += d_power * (a * dx + b * dy)
+        s_my += d_power * (b * dx + c * dy)
+        s_a += d_power * dx * dx
+        s_b += d_power * dx
+        s_c += d_power
+    sums[0] += s_mx
+    sums[1] += s_my
+    sums[2] += -_HALF * s_a
+    sums[3] -= s_b * dy
+    sums[4] += -_HALF * s_c * dy * dy
+    sums[5] += s_r
+    sums[6] += s_g
+    sums[7] += s_bl
+    sums[8] += s_o
+    sums[9] += s_d
+
+
+@numba.njit(fastmath=True, error_model="numpy", cache=True)
+def _backward_tile(tile, offsets, gauss_ids, slot_of, packed, tiles_x, width, height, t_final, last_in,
+                   grad_rgb, grad_alpha, grad_depth, bg, state, row_rank, grad_slots):
+    """Walk one tile's list back to front from its last contributor, recovering T by division as 3DGS does.
+
+    row_rank[r] is the highest last-contributor rank in tile row r: rows past it are skipped.
+    """
+    x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
+    start = offsets[tile]
+    state[:] = 0.0
+    row_rank[:] = 0.0
+    rank_max = 0
+    for py in range(y0, y1 + 1):
+        for px in range(x0, x1 + 1):
+            i = (py - y0) * TILE + px - x0
+            t = t_final[py, px]
+            g_bg = grad_rgb[py, px, 0] * bg[0] + grad_rgb[py, px, 1] * bg[1] + grad_rgb[py, px, 2] * bg[2]
+            state[0, i] = t
+            state[1, i] = -t * (grad_alpha[py, px] - g_bg)
+            state[2, i] = grad_rgb[py, px, 0]
+            state[3, i] = grad_rgb[py, px, 1]
+            state[4, i] = grad_rgb[py, px, 2]
+            state[5, i] = grad_depth[py, px]
+            pixel_rank = last_in[py, px] - start + 1
+            state[6, i] = pixel_rank
+            row_rank[py - y0] = max(row_rank[py - y0], pixel_rank)
+            rank_max = max(rank_max, pixel_rank)
+    for k in range(start + rank_max - 1, start - 1, -1):
+        p = packed[gauss_ids[k]]
+        rank = np.float32(k - start + 1)
+        for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
+            if rank > row_rank[py - y0]:
+                continue
+            _backward_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
+                          p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], rank, grad_slots[slot_of[k]])
+
+
+@numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
+def backward(offsets, gauss_ids, slot_of, packed, tiles_x, tile_order, n_workers, width, height, t_final, last_in,
+             grad_rgb, grad_alpha, grad_depth, bg, grad_slots):
+    """All tiles dealt over n_workers threads: one gradient row per intersection, stored Gaussian-major.
+
+    grad_slots [n_isect, N_GRAD] is laid out so each Gaussian's rows are contiguous for the reduction.
+    """
+    for worker in numba.prange(n_workers):
+        state = np.empty((7, _PIX), np.float32)
+        row_rank = np.empty(TILE, np.float32)
+        for j in range(worker, tile_order.shape[0], n_workers):
+            tile = tile_order[j]
+            for k in range(offsets[tile], offsets[tile + 1]):
+                grad_slots[slot_of[k]] = 0.0
+            _backward_tile(tile, offsets, gauss_ids, slot_of, packed, tiles_x, width, height, t_final, last_in,
+                           grad_rgb, grad_alpha, grad_depth, bg, state, row_rank, grad_slots)
+
+
+@numba.njit(parallel=True, cache=True)
+def reduce_by_gaussian(starts, grad_slots, grads):
+    """grads[g] = sum of the contiguous rows starts[g]:starts[g + 1]; parallel, one output row each."""
+    for g in numba.prange(grads.shape[0]):
+        for k in range(starts[g], starts[g + 1]):
+            for j in range(N_GRAD):
+                grads[g, j] += grad_slots[k, j]
