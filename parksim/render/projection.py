@@ -33,15 +33,19 @@ from torch import Tensor
 
 from ..camera import CameraModel
 from ..geometry import rotation_from_quaternion
+from .project_fast import FusedUTConfig, fused_supported, project_ut_fused
 
 __all__ = ["UTParams", "Projected2D", "SigmaPoints", "project_gaussians", "cull_mask", "covariance_sqrt",
-           "BLUR_PX2"]
+           "BLUR_PX2", "BACKENDS"]
 
 BLUR_PX2 = 0.3
 """Isotropic 2D blur added to every footprint (as 3DGS): a Gaussian never gets thinner than a pixel."""
 
 _EXTENT_SIGMAS = 3.0
 _BLEND_THETA_DEG = 10.0
+
+BACKENDS = ("auto", "torch", "fused")
+"""``project_gaussians`` backends: the fused CPU kernel where it applies ("auto"), this module's torch, or fused."""
 
 
 @dataclass(frozen=True)
@@ -230,18 +234,38 @@ def _clamp_eigenvalues(cov: Tensor, lo: float, hi: float) -> Tensor:
     return torch.where(need[..., None], clamped, cov)
 
 
+def _fused_config(params: UTParams, near: float, far: float, cap: float) -> FusedUTConfig:
+    """This module's UT rules and limits, as the fused kernel takes them."""
+    ut, fifth = SigmaPoints.unscented(params.alpha, params.beta, params.kappa), SigmaPoints.fifth_degree()
+    return FusedUTConfig((ut.z, ut.wm, ut.wc), (fifth.z, fifth.wm, fifth.wc), params.adaptive,
+                         math.radians(params.adaptive_min_theta_deg), math.radians(_BLEND_THETA_DEG),
+                         params.adaptive_min_rel_size, near, far, BLUR_PX2, _EXTENT_SIGMAS, cap)
+
+
 def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Tensor | None], camera: CameraModel,
                       method: str = "ut", ut_params: UTParams | None = None, near: float = 0.05,
-                      far: float = 1000.0, max_radius: float | None = None) -> Projected2D:
+                      far: float = 1000.0, max_radius: float | None = None, backend: str = "auto") -> Projected2D:
     """Cull, then project Gaussians given in the camera frame (OpenCV axes) into ``camera``.
 
     ``cov`` is either camera-frame covariances ``[N,3,3]`` or ``(quats, log_scales, R_cam_world)``
     (world-frame rotation and log scales; ``R_cam_world`` may be None when they are camera-frame).
     ``max_radius`` caps the 3-sigma footprint radius in pixels (default: the image's larger side).
+    ``backend`` "auto" runs UT with ``(quats, log_scales, R)`` on CPU float tensors through the fused
+    kernel (``project_fast``, same results), everything else here; "torch" forces this module's path.
     """
     if method not in ("ut", "ewa"):
         raise ValueError(f"project_gaussians: method must be 'ut' or 'ewa', got {method!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"project_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
     params = ut_params or UTParams()
+    cap = float(max_radius if max_radius is not None else max(camera.width, camera.height))
+    fusable = method == "ut" and not isinstance(cov, Tensor) and fused_supported(camera, means_cam, *cov)
+    if backend == "fused" and not fusable:
+        raise ValueError("project_gaussians: backend='fused' needs method='ut', (quats, log_scales, R) on CPU "
+                         "float32/float64 of one dtype and an OpenCVFisheye, RadialPolyFisheye or Pinhole camera")
+    if fusable and backend != "torch":
+        return Projected2D(*project_ut_fused(means_cam, cov[0], cov[1], cov[2], camera,
+                                             _fused_config(params, near, far, cap)))
     if isinstance(cov, Tensor):   # sqrt(trace): an upper bound of the largest standard deviation
         sigma_max = torch.sqrt(torch.clamp_min(cov.diagonal(dim1=-2, dim2=-1).sum(-1), 0.0))
     else:
@@ -255,7 +279,6 @@ def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Ten
     else:
         mean2d, cov2d = _ewa(mu, L, camera)
 
-    cap = float(max_radius if max_radius is not None else max(camera.width, camera.height))
     blur = torch.tensor([BLUR_PX2, 0.0, BLUR_PX2], dtype=cov2d.dtype, device=cov2d.device)
     finite = torch.isfinite(mean2d).all(-1) & torch.isfinite(cov2d).all(-1)
     cov2d = torch.where(finite[:, None], cov2d, torch.zeros_like(cov2d))   # never hand NaN downstream

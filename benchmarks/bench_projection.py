@@ -1,0 +1,125 @@
+"""Projection speed on this machine: fused numba kernel vs the torch reference path of ``project_gaussians``.
+
+A four-camera surround rig (640x480 OpenCV fisheyes, 190 deg, 1 m up, looking forward/back/left/right)
+inside a 40 x 40 x 3 m box of random Gaussians (3-sigma 5 cm - 1 m, random orientation). Times the
+projection as ``render()`` runs it per camera (world -> camera transform, cull, UT), forward and
+forward+backward (a weighted sum of means, conics and depths as the loss), 1 and 4 cameras, 1e5 and 2e5
+Gaussians, float32. Reports medians after a warm-up and the torch/fused ratio; --out writes markdown.
+
+    .venv/bin/python benchmarks/bench_projection.py --out benchmarks/RESULTS_projection.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numba
+import torch
+
+from parksim.camera import OpenCVFisheye
+from parksim.geometry import rotation_from_quaternion
+from parksim.render.projection import project_gaussians
+
+Scene = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+def make_scene(n: int, seed: int = 0) -> Scene:
+    """(means, quats, log_scales) float32 in a 40 x 40 x 3 m box around the origin."""
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g) - torch.tensor([0.5, 0.5, 0.0])) * torch.tensor([40.0, 40.0, 3.0])
+    quats = torch.randn(n, 4, generator=g)
+    log_scales = torch.log(torch.rand(n, 3, generator=g) * 0.3 + 0.017)
+    return means, quats, log_scales
+
+
+def make_rig() -> list[tuple[OpenCVFisheye, torch.Tensor, torch.Tensor]]:
+    """(camera, R_cam_world, t_cam_world) of four 190 deg fisheyes at the origin, 1 m up."""
+    cam = OpenCVFisheye(640, 480, 160.0, 160.0, 319.5, 239.5, [0.05, -0.01, 0.002, -0.0005], max_fov_deg=190.0)
+    # camera x right, y down, z forward; yaw 0 looks along world +x
+    front = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    rig = []
+    for yaw in (0.0, 0.5 * torch.pi, torch.pi, 1.5 * torch.pi):
+        half = torch.tensor(0.5 * yaw)
+        R_world_cam = rotation_from_quaternion(torch.stack([half.cos(), torch.tensor(0.0), torch.tensor(0.0),
+                                                            half.sin()])) @ front.T
+        R = R_world_cam.T.contiguous()
+        rig.append((cam, R, -R @ torch.tensor([0.0, 0.0, 1.0])))
+    return rig
+
+
+def project_rig(scene: Scene, rig: list, backend: str, backward: bool) -> None:
+    """Project the scene into every camera of ``rig`` (as ``render()`` does), optionally backpropagate."""
+    means, quats, log_scales = (t.detach().requires_grad_(backward) for t in scene)
+    loss = torch.zeros(())
+    for cam, R, t in rig:
+        p = project_gaussians(means @ R.T + t, (quats, log_scales, R), cam, backend=backend)
+        if backward:
+            loss = loss + p.means2d.sum() + p.conics.sum() + p.depths.sum()
+    if backward:
+        loss.backward()
+
+
+def median_ms(fn, repeats: int) -> float:
+    """Median wall time of ``fn()`` in milliseconds after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1000 * statistics.median(times)
+
+
+def main() -> None:
+    """Run every case and print (and optionally write) the table."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (torch path: 3 at most)")
+    ap.add_argument("--threads", type=int, help="torch and numba threads (default: their defaults)")
+    ap.add_argument("--out", help="write the results as markdown here")
+    args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+        numba.set_num_threads(args.threads)
+    rig = make_rig()
+    rows = []
+    for n in (100_000, 200_000):
+        scene = make_scene(n)
+        for n_cams in (1, 4):
+            for backward in (False, True):
+                ms = {b: median_ms(lambda b=b: project_rig(scene, rig[:n_cams], b, backward),
+                                   args.repeats if b == "fused" else min(args.repeats, 3))
+                      for b in ("torch", "fused")}
+                row = (f"| {n:,} | {n_cams} | {'fwd+bwd' if backward else 'fwd'} | {ms['torch']:.1f} | "
+                       f"{ms['fused']:.1f} | {ms['torch'] / ms['fused']:.1f}x |")
+                print(row, flush=True)
+                rows.append(row)
+    lines = [
+        "# Projection benchmark: fused numba kernel vs torch path",
+        "",
+        f"- command: `{' '.join([os.path.relpath(sys.executable), *sys.argv])}`",
+        f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
+        f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
+        f"{numba.get_num_threads()}, torch threads {torch.get_num_threads()}, load average "
+        f"{', '.join(f'{v:.1f}' for v in os.getloadavg())} (shared: compare within a row only)",
+        f"- python {platform.python_version()}, torch {torch.__version__}, numba {numba.__version__}",
+        "- scene: random Gaussians in a 40 x 40 x 3 m box, 4 x 640x480 OpenCVFisheye 190 deg at the centre, "
+        "float32; times include world->camera transform and culling; medians in ms",
+        "",
+        "| Gaussians | cameras | pass | torch (ms) | fused (ms) | speed-up |",
+        "| ---: | ---: | --- | ---: | ---: | ---: |",
+        *rows,
+        "",
+    ]
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

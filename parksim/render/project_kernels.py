@@ -1,0 +1,463 @@
+"""Numba kernels of the fused UT projection: culling, forward, and the hand-written backward.
+
+One Gaussian per loop iteration, the same steps as the torch reference in ``projection.py``:
+quaternion -> ``L = R_cw R(q) S``, sigma points ``mu + L z_p`` through the lens model (centre, axis and
+rim handled as ``CameraModel.project``), weighted 2D moments, the adaptive fifth-degree blend, blur,
+eigenvalue clamp, conic. The backward recomputes its Gaussian's forward and applies the chain rule in
+reverse, so nothing per sigma point is stored between the passes.
+
+Arrays in and out keep the caller's dtype (float32 in the renderer); arithmetic inside is float64:
+this is scalar code, where float64 costs about what float32 would, and it keeps float32 outputs within
+rounding of exact. Gaussians are dealt to threads in chunks, each chunk with its own scratch arrays.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OPENCV_FISHEYE, RADIAL_POLY, PINHOLE = 0, 1, 2
+"""Lens model ids: rho = theta (1 + k1 t^2 + ...), rho = k1 t + k2 t^2 + ..., rho = tan(theta)."""
+
+FX, FY, CX, CY, THETA_MAX, RHO_MAX, Q0, K1 = range(8)
+"""Slots of the float64 ``lens`` array; k1..k4 sit at ``K1 .. K1 + 3``."""
+
+AXIS_EPS, TINY, ADAPTIVE, THETA_MIN, BLEND, REL_SIZE, BLUR, LO, HI, EXTENT, WIDTH, HEIGHT, NEAR, FAR = range(14)
+"""Slots of the float64 ``opts`` array: dtype limits, adaptive rule, 2D blur and clamps, image size, culling."""
+N_OPTS = 14
+
+N_ROT_GRAD = 9
+"""Columns of the per-chunk partial gradient of ``R_cam_world`` (row major)."""
+
+CHUNK = 256
+"""Gaussians per parallel work item (one scratch allocation each)."""
+
+
+@numba.njit(inline="always", cache=True)
+def _rho(model: int, lens: np.ndarray, t: float) -> tuple[float, float]:
+    """``rho(theta)`` and ``d rho / d theta`` of the lens model ``model``."""
+    k1, k2, k3, k4 = lens[K1], lens[K1 + 1], lens[K1 + 2], lens[K1 + 3]
+    if model == OPENCV_FISHEYE:
+        t2 = t * t
+        return (t * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))),
+                1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4))))
+    if model == RADIAL_POLY:
+        return t * (k1 + t * (k2 + t * (k3 + t * k4))), k1 + t * (2.0 * k2 + t * (3.0 * k3 + t * 4.0 * k4))
+    c = math.cos(t)
+    return math.tan(t), 1.0 / (c * c)
+
+
+@numba.njit(inline="always", cache=True)
+def _project(model: int, lens: np.ndarray, axis_eps: float, tiny: float, x: float, y: float, z: float
+             ) -> tuple[float, float, float, float, float, float, float, float]:
+    """``(u, v)`` of a camera-frame point and the Jacobian rows ``du/dp, dv/dp``, as ``CameraModel.project``.
+
+    ``u = fx s x + cx`` with the radial scale ``s = rho(theta) / r``; the camera centre maps to the
+    principal point, points within ``axis_eps`` of the axis use ``s = q(0) / |p|`` (front) or the rim
+    (back), points past ``theta_max`` land on the rim in their own direction.
+    """
+    n2 = x * x + y * y + z * z
+    if n2 <= tiny:
+        return lens[CX], lens[CY], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    r2 = x * x + y * y
+    sx = sy = sz = 0.0
+    if r2 <= (axis_eps * axis_eps) * n2:
+        if z > 0:
+            n = math.sqrt(n2)
+            s = lens[Q0] / n
+            k = -s / n2
+            sx, sy, sz = k * x, k * y, k * z
+        else:
+            s = lens[RHO_MAX]
+    else:
+        r = math.sqrt(r2)
+        theta = math.atan2(r, z)
+        if theta > lens[THETA_MAX]:
+            s = lens[RHO_MAX] / r
+            sr = -s / r
+        else:
+            rho, drho = _rho(model, lens, theta)
+            s = rho / r
+            sr = (drho * z / n2 - s) / r
+            sz = -drho / n2
+        sx, sy = sr * x / r, sr * y / r
+    fx, fy = lens[FX], lens[FY]
+    return (fx * s * x + lens[CX], fy * s * y + lens[CY],
+            fx * (s + x * sx), fx * x * sy, fx * x * sz, fy * y * sx, fy * (s + y * sy), fy * y * sz)
+
+
+@numba.njit(inline="always", cache=True)
+def _unit_quaternion(q: np.ndarray) -> tuple[float, float, float, float, float]:
+    """``(w, x, y, z)`` normalised and the input norm; a zero quaternion acts as the identity (norm 0)."""
+    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    if not norm > 0:
+        return 1.0, 0.0, 0.0, 0.0, 0.0
+    return w / norm, x / norm, y / norm, z / norm, norm
+
+
+@numba.njit(inline="always", cache=True)
+def _covariance_sqrt(qw: float, qx: float, qy: float, qz: float, s: np.ndarray, rot: np.ndarray,
+                     R: np.ndarray, L: np.ndarray) -> None:
+    """``R = R(q)`` and ``L = rot R(q) diag(s)`` into the 3x3 scratch arrays."""
+    R[0, 0] = 1 - 2 * (qy * qy + qz * qz)
+    R[0, 1] = 2 * (qx * qy - qw * qz)
+    R[0, 2] = 2 * (qx * qz + qw * qy)
+    R[1, 0] = 2 * (qx * qy + qw * qz)
+    R[1, 1] = 1 - 2 * (qx * qx + qz * qz)
+    R[1, 2] = 2 * (qy * qz - qw * qx)
+    R[2, 0] = 2 * (qx * qz - qw * qy)
+    R[2, 1] = 2 * (qy * qz + qw * qx)
+    R[2, 2] = 1 - 2 * (qx * qx + qy * qy)
+    for i in range(3):
+        for j in range(3):
+            L[i, j] = (rot[i, 0] * R[0, j] + rot[i, 1] * R[1, j] + rot[i, 2] * R[2, j]) * s[j]
+
+
+@numba.njit(inline="always", cache=True)
+def _sigma_points(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float,
+                  L: np.ndarray, zs: np.ndarray, uvj: np.ndarray, jac: bool) -> None:
+    """Project ``mu + L z_p`` for every row of ``zs``: ``uvj[p] = (u, v[, du/dp, dv/dp])``."""
+    for p in range(zs.shape[0]):
+        z0, z1, z2 = zs[p, 0], zs[p, 1], zs[p, 2]
+        out = _project(model, lens, opts[AXIS_EPS], opts[TINY],
+                       x + (L[0, 0] * z0 + L[0, 1] * z1 + L[0, 2] * z2),
+                       y + (L[1, 0] * z0 + L[1, 1] * z1 + L[1, 2] * z2),
+                       z + (L[2, 0] * z0 + L[2, 1] * z1 + L[2, 2] * z2))
+        uvj[p, 0], uvj[p, 1] = out[0], out[1]
+        if jac:
+            for k in range(6):
+                uvj[p, 2 + k] = out[2 + k]
+
+
+@numba.njit(inline="always", cache=True)
+def _moments(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, mom: np.ndarray) -> None:
+    """``mom = (mean u, mean v, cov a, b, c)`` of the projected points, relative to the centre point."""
+    u0, v0 = uvj[0, 0], uvj[0, 1]
+    mu = mv = 0.0
+    for p in range(wm.shape[0]):
+        mu += wm[p] * (uvj[p, 0] - u0)
+        mv += wm[p] * (uvj[p, 1] - v0)
+    a = b = c = 0.0
+    for p in range(wm.shape[0]):
+        du, dv = uvj[p, 0] - u0 - mu, uvj[p, 1] - v0 - mv
+        a += wc[p] * du * du
+        b += wc[p] * du * dv
+        c += wc[p] * dv * dv
+    mom[0], mom[1], mom[2], mom[3], mom[4] = u0 + mu, v0 + mv, a, b, c
+
+
+@numba.njit(cache=True)
+def _adaptive_weight(opts: np.ndarray, x: float, y: float, z: float, sigma: float
+                     ) -> tuple[bool, float, float, float, float, float]:
+    """``(rich, w, dw/dx, dw/dy, dw/dz, dw/dsigma)`` of the blend into the fifth-degree set."""
+    rc2 = x * x + y * y
+    n = math.sqrt(rc2 + z * z)
+    rel = opts[REL_SIZE]
+    if not (opts[ADAPTIVE] > 0 and sigma > rel * n):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    rc = math.sqrt(rc2)
+    theta = math.atan2(rc, z)
+    if not theta > opts[THETA_MIN]:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    a_raw = (theta - opts[THETA_MIN]) / opts[BLEND]
+    b_raw = sigma / (rel * n) - 1.0
+    a, b = min(a_raw, 1.0), min(b_raw, 1.0)
+    da = 1.0 / opts[BLEND] if a_raw <= 1.0 else 0.0
+    db = 1.0 / (rel * n) if b_raw <= 1.0 else 0.0
+    gt = b * da                    # dw/dtheta
+    gn = -a * db * sigma / n       # dw/d|mu|
+    den = rc2 + z * z
+    gr = gt * z / den              # dw/drc through theta
+    return (True, a * b, gr * x / rc + gn * x / n, gr * y / rc + gn * y / n,
+            -gt * rc / den + gn * z / n, a * db)
+
+
+@numba.njit(inline="always", cache=True)
+def _ut(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
+        L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
+        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool
+        ) -> tuple[bool, float, float, float, float, float]:
+    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``."""
+    _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
+    _moments(uv7, wm7, wc7, mom[0])
+    aw = _adaptive_weight(opts, x, y, z, sigma)
+    if aw[0]:
+        _sigma_points(model, lens, opts, x, y, z, L, z19, uv19, jac)
+        _moments(uv19, wm19, wc19, mom[1])
+        for k in range(5):
+            mom[2, k] = mom[0, k] + aw[1] * (mom[1, k] - mom[0, k])
+    else:
+        for k in range(5):
+            mom[2, k] = mom[0, k]
+    return aw
+
+
+@numba.njit(inline="always", cache=True)
+def _eig_clamp(a: float, b: float, c: float, lo: float, hi: float, tiny: float
+               ) -> tuple[bool, bool, float, float, float, float, float, float, float]:
+    """Eigenvalues of ``[[a, b], [b, c]]`` clamped to ``[lo, hi]`` via ``f(A) = f2 I + s (A - l2 I)``.
+
+    Returns ``(need, pos, r, l1, l2, s, a', b', c')``; ``need`` False leaves the matrix untouched.
+    """
+    mid, half = 0.5 * (a + c), 0.5 * (a - c)
+    disc = half * half + b * b
+    r0 = math.sqrt(disc)
+    if not (mid - r0 < lo or mid + r0 > hi):
+        return False, False, 0.0, mid, mid, 0.0, a, b, c
+    pos = disc > tiny
+    r = r0 if pos else 0.0
+    l1, l2 = mid + r, mid - r
+    f1, f2 = min(max(l1, lo), hi), min(max(l2, lo), hi)
+    s = (f1 - f2) / (2 * r) if pos else 0.0
+    return True, pos, r, l1, l2, s, f2 + s * (a - l2), s * b, f2 + s * (c - l2)
+
+
+@numba.njit(cache=True)
+def _eig_clamp_backward(a: float, b: float, c: float, lo: float, hi: float, tiny: float,
+                        ga: float, gb: float, gc: float) -> tuple[float, float, float]:
+    """Gradient of ``_eig_clamp``'s output w.r.t. ``(a, b, c)``."""
+    need, pos, r, l1, l2, s, _, _, _ = _eig_clamp(a, b, c, lo, hi, tiny)
+    if not need:
+        return ga, gb, gc
+    gs = ga * (a - l2) + gb * b + gc * (c - l2)
+    gf2 = ga + gc
+    gl2 = -s * (ga + gc)
+    gr = gl1 = 0.0
+    if pos:
+        gf1 = gs / (2 * r)
+        gf2 -= gf1
+        gr = -gs * s / r
+        gl1 = gf1 if lo <= l1 <= hi else 0.0
+    gl2 += gf2 if lo <= l2 <= hi else 0.0
+    gmid = gl1 + gl2
+    gr += gl1 - gl2
+    ghalf = gdisc_b = 0.0
+    if pos:
+        gdisc = gr / (2 * r)
+        ghalf = 2 * 0.5 * (a - c) * gdisc
+        gdisc_b = 2 * b * gdisc
+    return s * ga + 0.5 * (gmid + ghalf), s * gb + gdisc_b, s * gc + 0.5 * (gmid - ghalf)
+
+
+@numba.njit(cache=True)
+def _point_backward(uvj: np.ndarray, p: int, gu: float, gv: float, z_set: np.ndarray,
+                    g_mu: np.ndarray, g_L: np.ndarray) -> None:
+    """Pixel gradient of sigma point ``p`` -> its 3D point ``mu + L z_p`` -> ``g_mu``, ``g_L``."""
+    for i in range(3):
+        gp = uvj[p, 2 + i] * gu + uvj[p, 5 + i] * gv
+        g_mu[i] += gp
+        for j in range(3):
+            g_L[i, j] += gp * z_set[p, j]
+
+
+@numba.njit(cache=True)
+def _moments_backward(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, gmu: float, gmv: float,
+                      ga: float, gb: float, gc: float, scale: float, z_set: np.ndarray,
+                      g_mu: np.ndarray, g_L: np.ndarray) -> None:
+    """Back through ``_moments`` and ``_sigma_points``: adds ``scale *`` the gradient to ``g_mu`` and ``g_L``."""
+    npts = wm.shape[0]
+    u0, v0 = uvj[0, 0], uvj[0, 1]
+    mu = mv = 0.0
+    for p in range(npts):
+        mu += wm[p] * (uvj[p, 0] - u0)
+        mv += wm[p] * (uvj[p, 1] - v0)
+    sgu = sgv = 0.0                  # sum over points of dLoss/d(d_p), d_p = rel_p - m
+    for p in range(npts):
+        du, dv = uvj[p, 0] - u0 - mu, uvj[p, 1] - v0 - mv
+        sgu += wc[p] * (2 * ga * du + gb * dv)
+        sgv += wc[p] * (gb * du + 2 * gc * dv)
+    gu0, gv0 = gmu, gmv              # the centre point enters as uv_0 + m and through rel_p = uv_p - uv_0
+    for p in range(1, npts):
+        du, dv = uvj[p, 0] - u0 - mu, uvj[p, 1] - v0 - mv
+        gu = wc[p] * (2 * ga * du + gb * dv) + wm[p] * (gmu - sgu)
+        gv = wc[p] * (gb * du + 2 * gc * dv) + wm[p] * (gmv - sgv)
+        gu0 -= gu
+        gv0 -= gv
+        _point_backward(uvj, p, gu * scale, gv * scale, z_set, g_mu, g_L)
+    _point_backward(uvj, 0, gu0 * scale, gv0 * scale, z_set, g_mu, g_L)
+
+
+@numba.njit(cache=True)
+def _scale_rotation_backward(g: int, qw: float, qx: float, qy: float, qz: float, qn: float, s: np.ndarray,
+                             sigma: float, g_sigma: float, rot: np.ndarray, R: np.ndarray, g_L: np.ndarray,
+                             G: np.ndarray, grad_quats: np.ndarray, grad_log_scales: np.ndarray,
+                             g_rot: np.ndarray) -> None:
+    """Back through ``L = rot R(q) diag(exp(log_scales))`` and ``sigma = exp(max log_scales)``; ``G`` is scratch."""
+    for j in range(3):
+        g_s = 0.0
+        for i in range(3):
+            g_m = rot[0, i] * g_L[0, j] + rot[1, i] * g_L[1, j] + rot[2, i] * g_L[2, j]   # (rot^T g_L)[i, j]
+            g_s += R[i, j] * g_m
+            G[i, j] = g_m * s[j]     # dLoss/dR(q)
+        grad_log_scales[g, j] = s[j] * g_s + (g_sigma * sigma if s[j] == sigma else 0.0)
+    for i in range(3):
+        for k in range(3):
+            g_rot[3 * i + k] += (g_L[i, 0] * R[k, 0] * s[0] + g_L[i, 1] * R[k, 1] * s[1]
+                                 + g_L[i, 2] * R[k, 2] * s[2])
+    gw = 2 * (-qz * G[0, 1] + qy * G[0, 2] + qz * G[1, 0] - qx * G[1, 2] - qy * G[2, 0] + qx * G[2, 1])
+    gx = 2 * (qy * G[0, 1] + qz * G[0, 2] + qy * G[1, 0] - 2 * qx * G[1, 1] - qw * G[1, 2] + qz * G[2, 0]
+              + qw * G[2, 1] - 2 * qx * G[2, 2])
+    gy = 2 * (-2 * qy * G[0, 0] + qx * G[0, 1] + qw * G[0, 2] + qx * G[1, 0] + qz * G[1, 2] - qw * G[2, 0]
+              + qz * G[2, 1] - 2 * qy * G[2, 2])
+    gz = 2 * (-2 * qz * G[0, 0] - qw * G[0, 1] + qx * G[0, 2] + qw * G[1, 0] - 2 * qz * G[1, 1] + qy * G[1, 2]
+              + qx * G[2, 0] + qy * G[2, 1])
+    if qn > 0:
+        dot = qw * gw + qx * gx + qy * gy + qz * gz
+        grad_quats[g, 0] = (gw - qw * dot) / qn
+        grad_quats[g, 1] = (gx - qx * dot) / qn
+        grad_quats[g, 2] = (gy - qy * dot) / qn
+        grad_quats[g, 3] = (gz - qz * dot) / qn
+    else:
+        for k in range(4):
+            grad_quats[g, k] = 0.0
+
+
+@numba.njit(parallel=True, cache=True)
+def cull(means: np.ndarray, log_scales: np.ndarray, lens: np.ndarray, opts: np.ndarray, keep: np.ndarray) -> None:
+    """``keep[i]``: distance in ``[near, far]`` and the 3-sigma cone reaches within ``theta_max``.
+
+    Centres inside the lens' cone (``z >= |p| cos theta_max``) are kept without the angles.
+    """
+    cos_max = math.cos(lens[THETA_MAX])
+    for i in numba.prange(means.shape[0]):
+        x, y, z = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
+        dist = math.sqrt(x * x + y * y + z * z)
+        if not opts[NEAR] <= dist <= opts[FAR]:
+            keep[i] = False
+        elif z >= dist * cos_max:
+            keep[i] = True
+        else:
+            sigma = math.exp(max(float(log_scales[i, 0]), float(log_scales[i, 1]), float(log_scales[i, 2])))
+            ratio = min(opts[EXTENT] * sigma / max(dist, opts[NEAR]), 1.0)
+            keep[i] = math.atan2(math.sqrt(x * x + y * y), z) - math.asin(ratio) <= lens[THETA_MAX]
+
+
+@numba.njit(cache=True)
+def _forward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
+                   log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
+                   z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
+                   wc19: np.ndarray, out_means: np.ndarray, out_conics: np.ndarray, out_cov: np.ndarray,
+                   out_depths: np.ndarray, out_radii: np.ndarray, out_valid: np.ndarray) -> None:
+    """``forward`` for the rows ``start:stop`` of ``index`` (one thread's chunk)."""
+    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
+    R, L, s, mom = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5))
+    for i in range(start, stop):
+        g = index[i]
+        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        qw, qx, qy, qz, _ = _unit_quaternion(quats[g])
+        for j in range(3):
+            s[j] = math.exp(float(log_scales[g, j]))
+        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L)
+        _ut(model, lens, opts, x, y, z, max(s[0], s[1], s[2]), L, z7, wm7, wc7, z19, wm19, wc19,
+            uv7, uv19, mom, False)
+        mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
+        finite = np.isfinite(mean_u) and np.isfinite(mean_v) and np.isfinite(a) and np.isfinite(b) \
+            and np.isfinite(c)
+        if not finite:
+            mean_u = mean_v = a = b = c = 0.0
+        blur = opts[BLUR]
+        _, _, _, _, _, _, a, b, c = _eig_clamp(a + blur, b, c + blur, opts[LO], opts[HI], opts[TINY])
+        det = a * c - b * b
+        out_means[i, 0], out_means[i, 1] = mean_u, mean_v
+        out_conics[i, 0], out_conics[i, 1], out_conics[i, 2] = c / det, -b / det, a / det
+        out_cov[i, 0], out_cov[i, 1], out_cov[i, 2] = a, b, c
+        out_depths[i] = math.sqrt(x * x + y * y + z * z)
+        half = 0.5 * (a - c)
+        radius = math.ceil(opts[EXTENT] * math.sqrt(0.5 * (a + c) + math.sqrt(max(half * half + b * b, 0.0))))
+        out_radii[i] = radius
+        out_valid[i] = finite and (mean_u + radius > -0.5 and mean_u - radius < opts[WIDTH] - 0.5
+                                   and mean_v + radius > -0.5 and mean_v - radius < opts[HEIGHT] - 0.5)
+
+
+@numba.njit(parallel=True, cache=True)
+def forward(index: np.ndarray, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, rot: np.ndarray,
+            model: int, lens: np.ndarray, opts: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray,
+            z19: np.ndarray, wm19: np.ndarray, wc19: np.ndarray, out_means: np.ndarray, out_conics: np.ndarray,
+            out_cov: np.ndarray, out_depths: np.ndarray, out_radii: np.ndarray, out_valid: np.ndarray) -> None:
+    """Project the Gaussians ``index``: 2D means, conics, clamped covariances, distances, radii, validity."""
+    m = index.shape[0]
+    for ch in numba.prange((m + CHUNK - 1) // CHUNK):
+        _forward_range(ch * CHUNK, min(m, (ch + 1) * CHUNK), index, means, quats, log_scales, rot, model, lens,
+                       opts, z7, wm7, wc7, z19, wm19, wc19, out_means, out_conics, out_cov, out_depths,
+                       out_radii, out_valid)
+
+
+@numba.njit(cache=True)
+def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
+                    log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
+                    z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
+                    wc19: np.ndarray, g_means2d: np.ndarray, g_conics: np.ndarray, g_cov2d: np.ndarray,
+                    g_depths: np.ndarray, grad_means: np.ndarray, grad_quats: np.ndarray,
+                    grad_log_scales: np.ndarray, g_rot: np.ndarray) -> None:
+    """``backward`` for the rows ``start:stop`` of ``index``; adds the ``rot`` gradient into ``g_rot``."""
+    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
+    R, L, s, mom = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5))
+    g_mu, g_L, G = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    for i in range(start, stop):
+        g = index[i]
+        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        qw, qx, qy, qz, qn = _unit_quaternion(quats[g])
+        for j in range(3):
+            s[j] = math.exp(float(log_scales[g, j]))
+        sigma = max(s[0], s[1], s[2])
+        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L)
+        rich, w, dwx, dwy, dwz, dws = _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19,
+                                          wc19, uv7, uv19, mom, True)
+        n = math.sqrt(x * x + y * y + z * z)
+        gd = float(g_depths[i])
+        g_mu[0], g_mu[1], g_mu[2] = gd * x / n, gd * y / n, gd * z / n
+        for k in range(3):
+            for j in range(3):
+                g_L[k, j] = 0.0
+        mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
+        finite = np.isfinite(mean_u) and np.isfinite(mean_v) and np.isfinite(a) and np.isfinite(b) \
+            and np.isfinite(c)
+        gs = 0.0
+        if finite:
+            blur, lo, hi, tiny = opts[BLUR], opts[LO], opts[HI], opts[TINY]
+            _, _, _, _, _, _, ca, cb, cc = _eig_clamp(a + blur, b, c + blur, lo, hi, tiny)
+            det = ca * cc - cb * cb
+            g0, g1, g2 = float(g_conics[i, 0]), float(g_conics[i, 1]), float(g_conics[i, 2])
+            gdet = -(g0 * cc - g1 * cb + g2 * ca) / (det * det)
+            gca = g2 / det + gdet * cc + float(g_cov2d[i, 0])
+            gcb = -g1 / det - 2 * gdet * cb + float(g_cov2d[i, 1])
+            gcc = g0 / det + gdet * ca + float(g_cov2d[i, 2])
+            ga, gb, gc = _eig_clamp_backward(a + blur, b, c + blur, lo, hi, tiny, gca, gcb, gcc)
+            gmu, gmv = float(g_means2d[i, 0]), float(g_means2d[i, 1])
+            _moments_backward(uv7, wm7, wc7, gmu, gmv, ga, gb, gc, 1.0 - w, z7, g_mu, g_L)
+            if rich:
+                _moments_backward(uv19, wm19, wc19, gmu, gmv, ga, gb, gc, w, z19, g_mu, g_L)
+                gw = (gmu * (mom[1, 0] - mom[0, 0]) + gmv * (mom[1, 1] - mom[0, 1])
+                      + ga * (mom[1, 2] - mom[0, 2]) + gb * (mom[1, 3] - mom[0, 3])
+                      + gc * (mom[1, 4] - mom[0, 4]))
+                g_mu[0] += gw * dwx
+                g_mu[1] += gw * dwy
+                g_mu[2] += gw * dwz
+                gs = gw * dws
+        for k in range(3):
+            grad_means[g, k] = g_mu[k]
+        # sigma = exp(max log-scale): torch's amax splits the gradient evenly between ties
+        ties = (s[0] == sigma) + (s[1] == sigma) + (s[2] == sigma)
+        _scale_rotation_backward(g, qw, qx, qy, qz, qn, s, sigma, gs / ties, rot, R, g_L, G,
+                                 grad_quats, grad_log_scales, g_rot)
+
+
+@numba.njit(parallel=True, cache=True)
+def backward(index: np.ndarray, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, rot: np.ndarray,
+             model: int, lens: np.ndarray, opts: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray,
+             z19: np.ndarray, wm19: np.ndarray, wc19: np.ndarray, g_means2d: np.ndarray, g_conics: np.ndarray,
+             g_cov2d: np.ndarray, g_depths: np.ndarray, grad_means: np.ndarray, grad_quats: np.ndarray,
+             grad_log_scales: np.ndarray, grad_rot: np.ndarray) -> None:
+    """Gradients of ``forward``'s means, conics, covariances and depths w.r.t. means, quats, log-scales, rot.
+
+    Rows ``index`` of ``grad_means/quats/log_scales`` are written (the caller zeroes the rest);
+    ``grad_rot[chunk]`` (zeroed by the caller) gets each chunk's partial sum of the ``rot`` gradient.
+    """
+    m = index.shape[0]
+    for ch in numba.prange((m + CHUNK - 1) // CHUNK):
+        _backward_range(ch * CHUNK, min(m, (ch + 1) * CHUNK), index, means, quats, log_scales, rot, model, lens,
+                        opts, z7, wm7, wc7, z19, wm19, wc19, g_means2d, g_conics, g_cov2d, g_depths, grad_means,
+                        grad_quats, grad_log_scales, grad_rot[ch])
