@@ -12,7 +12,7 @@ import importlib
 import sys
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "ipm"]
+COMMANDS = ["demo", "synth", "ipm", "serve"]
 
 
 def build_parser() -> argparse.ArgumentParser:

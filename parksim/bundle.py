@@ -1,0 +1,106 @@
+"""Scene bundles: a trained Gaussian scene with everything needed to render and evaluate it.
+
+```
+gaussians.ply      the Gaussians (INRIA 3DGS layout)
+rig.json           the rig the scene was trained with, BEV spec included (Rig.save)
+map.json           the dataset's world slot map and obstacles (optional)
+bundle.json        metadata: format version, source dataset, iterations, per-camera response
+config.yaml        the training config used (optional)
+metrics.jsonl/png  training metrics (optional)
+```
+``load(dir)`` reads it back for rendering; ``save`` writes each file atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from .gaussians import GaussianScene, PLYFormatError
+from .rig import BEVSpec, CalibrationError, Rig
+
+__all__ = ["Bundle", "BundleError", "load", "save", "atomic_write", "write_json", "BUNDLE_VERSION"]
+
+BUNDLE_VERSION = 1
+"""Bumped when the bundle layout changes incompatibly."""
+
+GAUSSIANS, RIG, MAP, META = "gaussians.ply", "rig.json", "map.json", "bundle.json"
+
+
+class BundleError(ValueError):
+    """A bundle folder is missing a file or holds an unreadable one; the message names it."""
+
+
+@dataclass
+class Bundle:
+    """A trained scene: Gaussians, the rig (with its BEV spec), the world map and metadata."""
+
+    scene: GaussianScene
+    rig: Rig
+    map: dict[str, Any] | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def bev(self) -> BEVSpec:
+        return self.rig.bev
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Call ``write(tmp)`` on a temp path next to ``path``, then rename: the file appears whole or not at all."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    """Atomically write indented JSON."""
+    atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=1) + "\n"))
+
+
+def save(directory: str | Path, bundle: Bundle) -> Path:
+    """Write ``bundle`` into ``directory`` (created if needed); other files there are left alone."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    atomic_write(directory / GAUSSIANS, bundle.scene.save_ply)
+    atomic_write(directory / RIG, bundle.rig.save)
+    if bundle.map is not None:
+        write_json(directory / MAP, bundle.map)
+    write_json(directory / META, {"version": BUNDLE_VERSION, **bundle.meta})
+    return directory
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BundleError(f"{path}: unreadable JSON ({e})") from None
+
+
+def load(directory: str | Path) -> Bundle:
+    """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise BundleError(f"{directory}: bundle folder not found")
+    for name in (GAUSSIANS, RIG, META):
+        if not (directory / name).is_file():
+            raise BundleError(f"{directory}: not a scene bundle ({name} is missing)")
+    meta = _read_json(directory / META)
+    if not isinstance(meta, dict) or meta.get("version") != BUNDLE_VERSION:
+        raise BundleError(f"{directory / META}: bundle version {meta.get('version') if isinstance(meta, dict) else '?'}"
+                          f" is not the supported version {BUNDLE_VERSION}")
+    try:
+        scene = GaussianScene.load_ply(directory / GAUSSIANS)
+        rig = Rig.load(directory / RIG)
+    except (PLYFormatError, CalibrationError) as e:
+        raise BundleError(str(e)) from None
+    world_map = _read_json(directory / MAP) if (directory / MAP).is_file() else None
+    meta.pop("version")
+    return Bundle(scene, rig, world_map, meta)

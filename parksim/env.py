@@ -1,0 +1,225 @@
+"""``ParkingEnv`` (gymnasium, registered as ``ParkSim-v0``): park the ego car into a free slot of a scene.
+
+Frames come from the scene bundle in-process (``bundle=``) or from ``parksim serve`` (``server=``);
+both give the same uint8 images for the same pose. The ego is a kinematic bicycle
+(``parksim.vehicle``) driven by ``[acceleration m/s^2, steering angle rad]`` at 10 Hz. The target is
+a free slot of the scene's slot map; the car is parked when its body centre is within
+``pos_tol`` of the slot centre, its heading within ``yaw_tol`` of the slot axis (either way) and
+it has stopped. Touching a pillar, parked car or wall ends the episode.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .client import LocalSim, RemoteSim
+from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, step, wrap_angle
+
+__all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error"]
+
+_SUCCESS_BONUS, _COLLISION_PENALTY, _STEP_COST, _YAW_WEIGHT = 10.0, 10.0, 0.01, 0.5
+_TOP_PX_PER_M = 16
+
+
+def slot_pose(slot: dict[str, Any]) -> tuple[np.ndarray, float]:
+    """Slot centre (world xy) and its parking heading: into the slot, or along it for parallel slots."""
+    c = np.asarray(slot["corners"], np.float64)
+    centre = c.mean(axis=0)
+    into = c[2:].mean(axis=0) - c[:2].mean(axis=0)
+    along = c[1] - c[0]
+    axis = along if np.linalg.norm(along) > np.linalg.norm(into) else into
+    return centre, math.atan2(axis[1], axis[0])
+
+
+def free_slots(world_map: dict[str, Any]) -> list[dict[str, Any]]:
+    """The map's slots that no parked car occupies."""
+    return [s for s in world_map.get("slots", []) if not s.get("occupied", False)]
+
+
+def heading_error(yaw: float, slot_yaw: float) -> float:
+    """Heading error to the slot axis in [0, pi/2]: forward or backward parking both count."""
+    e = abs(float(wrap_angle(yaw - slot_yaw)))
+    return min(e, math.pi - e)
+
+
+class ParkingEnv(gym.Env):
+    """Closed-loop parking in a reconstructed garage: fisheye views and/or BEV plus ego state in, controls out."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, bundle: str | Path | Any = None, server: str | None = None, scene: str | None = None,
+                 api_key: str | None = None, cameras: Sequence[str] | None = None, bev: bool = False,
+                 scale: float = 0.25, max_steps: int = 500, pos_tol: float = 0.35, yaw_tol: float = 0.15,
+                 vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None) -> None:
+        if (bundle is None) == (server is None):
+            raise ValueError("ParkingEnv needs exactly one frame source: bundle=<bundle folder> or server=<URL>")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.sim: LocalSim | RemoteSim = (LocalSim(bundle) if server is None
+                                          else RemoteSim(server, scene=scene, api_key=api_key))
+        info = self.sim.info()
+        if not info.get("map") or not free_slots(info["map"]):
+            raise ValueError(f"scene {info['id']!r} has no slot map with a free slot to park in")
+        self.world_map: dict[str, Any] = info["map"]
+        self.cameras = list(self.sim.cameras if cameras is None else cameras)
+        if isinstance(self.sim, LocalSim):
+            self.sim.check(self.cameras, scale)
+        self.bev, self.scale, self.max_steps = bev, scale, max_steps
+        self.pos_tol, self.yaw_tol, self.vehicle = pos_tol, yaw_tol, vehicle
+        self.render_mode = render_mode
+        self.obstacles = Obstacles(self.world_map.get("obstacles", []))
+        self.action_space = spaces.Box(np.array([-vehicle.max_decel, -vehicle.max_steer], np.float32),
+                                       np.array([vehicle.max_accel, vehicle.max_steer], np.float32))
+        self.observation_space = spaces.Dict(self._image_spaces(info) | {"state": self._state_space(info)})
+        self.state = VehicleState(0.0, 0.0, 0.0)
+        self.slot: dict[str, Any] = free_slots(self.world_map)[0]
+        self.steps, self._cost, self._background = 0, 0.0, None
+
+    def _state_space(self, info: dict[str, Any]) -> spaces.Box:
+        """``[x, y, yaw, v, steer, target_x, target_y, target_yaw]``, bounded by the scene and the car's limits."""
+        (x0, x1), (y0, y1), p = info["bounds"]["x"], info["bounds"]["y"], self.vehicle
+        lo = [x0 - 5, y0 - 5, -math.pi, -p.max_reverse, -p.max_steer, x0 - 5, y0 - 5, -math.pi]
+        hi = [x1 + 5, y1 + 5, math.pi, p.max_speed, p.max_steer, x1 + 5, y1 + 5, math.pi]
+        return spaces.Box(np.array(lo, np.float32), np.array(hi, np.float32))
+
+    def _image_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Box]:
+        """uint8 HxWx3 boxes for the requested views at ``scale`` (the BEV has the rig's BEV size)."""
+        out = {}
+        for name in self.cameras:
+            c = info["rig"]["cameras"][name]["intrinsics"]
+            out[name] = spaces.Box(0, 255, (round(c["height"] * self.scale), round(c["width"] * self.scale), 3), np.uint8)
+        if self.bev:
+            out["bev"] = spaces.Box(0, 255, (info["bev"]["height"], info["bev"]["width"], 3), np.uint8)
+        return out
+
+    # --- episode -------------------------------------------------------------------------
+    def _random_start(self) -> VehicleState:
+        """A collision-free pose on an aisle centre line, facing along the aisle (either way)."""
+        g = self.world_map["garage"]
+        lanes = g.get("lanes") or [float(np.mean(g["y"]))]
+        for _ in range(200):
+            x = self.np_random.uniform(g["x"][0] + 4.0, g["x"][1] - 4.0)
+            y = float(self.np_random.choice(lanes)) + self.np_random.uniform(-0.4, 0.4)
+            yaw = self.np_random.uniform(-0.15, 0.15) + (math.pi if self.np_random.random() < 0.5 else 0.0)
+            if not self.obstacles.collides((x, y, yaw), self.vehicle, margin=0.3):
+                return VehicleState(x, y, float(wrap_angle(yaw)))
+        raise RuntimeError("no collision-free start pose found on the aisles")
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """New episode. ``options``: ``start`` = (x, y, yaw) and/or ``slot`` = slot id (default: random free slot).
+
+        The random start is drawn before the slot, so the same seed gives the same start whatever slot is chosen.
+        """
+        super().reset(seed=seed)
+        options = options or {}
+        self.state = (VehicleState(*map(float, options["start"])) if "start" in options else self._random_start())
+        slots = free_slots(self.world_map)
+        if "slot" in options:
+            chosen = [s for s in slots if s["id"] == options["slot"]]
+            if not chosen:
+                raise ValueError(f"slot {options['slot']!r} is not a free slot; free slots: {[s['id'] for s in slots]}")
+            self.slot = chosen[0]
+        else:
+            self.slot = slots[int(self.np_random.integers(len(slots)))]
+        self.steps = 0
+        self._cost = self._progress_cost()
+        return self._observation(), self._info(collided=False)
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        """Apply ``[acceleration, steering]`` for 0.1 s; reward is progress towards the slot, +-10 on park/collision."""
+        a = np.clip(np.asarray(action, np.float64).reshape(2), self.action_space.low, self.action_space.high)
+        self.state = step(self.state, float(a[0]), float(a[1]), self.vehicle)
+        self.steps += 1
+        collided = self.obstacles.collides(self.state.pose, self.vehicle)
+        cost = self._progress_cost()
+        info = self._info(collided)
+        reward = self._cost - cost - _STEP_COST + _SUCCESS_BONUS * info["is_success"] - _COLLISION_PENALTY * collided
+        self._cost = cost
+        terminated = bool(info["is_success"] or collided)
+        return self._observation(), float(reward), terminated, self.steps >= self.max_steps, info
+
+    # --- measurements --------------------------------------------------------------------
+    def errors(self) -> tuple[float, float]:
+        """(distance of the body centre to the slot centre in m, heading error to the slot axis in rad)."""
+        centre, slot_yaw = slot_pose(self.slot)
+        dist = float(np.linalg.norm(car_centre(self.state.pose, self.vehicle) - centre))
+        return dist, heading_error(self.state.yaw, slot_yaw)
+
+    def _progress_cost(self) -> float:
+        dist, yaw_err = self.errors()
+        return dist + _YAW_WEIGHT * yaw_err
+
+    def target_pose(self) -> tuple[float, float, float]:
+        """Rear-axle pose that parks the car head-in, centred in the target slot."""
+        centre, yaw = slot_pose(self.slot)
+        x0, x1, _, _ = self.vehicle.extent
+        d = (x0 + x1) / 2
+        return (float(centre[0] - d * math.cos(yaw)), float(centre[1] - d * math.sin(yaw)), yaw)
+
+    def _info(self, collided: bool) -> dict[str, Any]:
+        dist, yaw_err = self.errors()
+        parked = dist < self.pos_tol and yaw_err < self.yaw_tol and abs(self.state.v) < 0.1
+        return {"slot": self.slot["id"], "distance": dist, "heading_error": yaw_err, "collision": bool(collided),
+                "is_success": bool(parked and not collided), "pose": self.state.pose, "speed": self.state.v}
+
+    def _observation(self) -> dict[str, np.ndarray]:
+        s = self.state
+        tx, ty, tyaw = self.target_pose()
+        obs = {"state": np.array([s.x, s.y, s.yaw, s.v, s.steer, tx, ty, tyaw], np.float32)}
+        if self.cameras or self.bev:
+            frame = self.sim.render(s.pose, self.cameras, self.bev, self.scale)
+            obs.update(frame.images)
+            if self.bev:
+                obs["bev"] = frame.bev
+        return obs
+
+    # --- top view ------------------------------------------------------------------------
+    def _to_px(self, xy: np.ndarray) -> np.ndarray:
+        g = self.world_map["garage"]
+        u = (xy[..., 0] - g["x"][0]) * _TOP_PX_PER_M
+        v = (g["y"][1] - xy[..., 1]) * _TOP_PX_PER_M
+        return np.round(np.stack([u, v], -1)).astype(np.int32)
+
+    def _static_top_view(self) -> np.ndarray:
+        """Floor, slots (occupied grey, free white) and obstacles, drawn once."""
+        import cv2
+
+        g = self.world_map["garage"]
+        w = int((g["x"][1] - g["x"][0]) * _TOP_PX_PER_M)
+        h = int((g["y"][1] - g["y"][0]) * _TOP_PX_PER_M)
+        img = np.full((h, w, 3), 60, np.uint8)
+        for s in self.world_map.get("slots", []):
+            colour = (120, 120, 120) if s.get("occupied") else (230, 230, 230)
+            cv2.polylines(img, [self._to_px(np.asarray(s["corners"]))], True, colour, 1, cv2.LINE_AA)
+        kinds = {"pillar": (150, 150, 170), "car": (90, 110, 160), "wall": (180, 170, 150)}
+        for kind, corners in zip(self.obstacles.kinds, self.obstacles.corners()):
+            cv2.fillPoly(img, [self._to_px(corners)], kinds.get(kind, (200, 200, 200)), cv2.LINE_AA)
+        return img
+
+    def render(self) -> np.ndarray | None:
+        """RGB top view of the garage: target slot in green, the ego footprint in orange with its heading."""
+        import cv2
+
+        if self.render_mode != "rgb_array":
+            return None
+        if self._background is None:
+            self._background = self._static_top_view()
+        img = self._background.copy()
+        cv2.polylines(img, [self._to_px(np.asarray(self.slot["corners"]))], True, (40, 220, 60), 2, cv2.LINE_AA)
+        body = self._to_px(footprint(self.state.pose, self.vehicle))
+        cv2.fillPoly(img, [body], (255, 140, 0), cv2.LINE_AA)
+        centre = self._to_px(car_centre(self.state.pose, self.vehicle))
+        nose = (body[0] + body[3]) // 2
+        cv2.line(img, tuple(int(v) for v in centre), tuple(int(v) for v in nose), (20, 20, 20), 2, cv2.LINE_AA)
+        return img
+
+
+if "ParkSim-v0" not in gym.registry:
+    gym.register("ParkSim-v0", entry_point="parksim.env:ParkingEnv")

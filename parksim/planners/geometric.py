@@ -1,0 +1,210 @@
+"""A geometric parking controller: Dubins path to the slot's axis, straight in, pure-pursuit tracking.
+
+It uses only what ``ParkingEnv`` exposes (the slot map and obstacles, the ego state): for the
+target slot it builds candidate paths (Dubins curves at a few turning radii to an entry pose on
+the slot axis, then straight to the head-in parking pose), keeps the shortest whose swept
+footprint clears every obstacle, and follows it with pure pursuit and a speed profile that stops
+on the goal. The example of closed-loop use; not an optimal planner (forward moves only).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from ..env import ParkingEnv, free_slots, slot_pose
+from ..vehicle import Obstacles, VehicleParams, footprint, wrap_angle
+
+__all__ = ["GeometricParker", "dubins_paths", "run_episode"]
+
+_TWO_PI = 2 * math.pi
+
+
+def _mod(a: float) -> float:
+    return a % _TWO_PI
+
+
+def _words(alpha: float, beta: float, d: float) -> dict[str, tuple[float, float, float] | None]:
+    """Normalised Dubins segment lengths (t, p, q) of the six words, None where a word does not exist."""
+    sa, sb, ca, cb, cab = math.sin(alpha), math.sin(beta), math.cos(alpha), math.cos(beta), math.cos(alpha - beta)
+    out: dict[str, tuple[float, float, float] | None] = {}
+    p2 = 2 + d * d - 2 * cab + 2 * d * (sa - sb)
+    tmp = math.atan2(cb - ca, d + sa - sb)
+    out["LSL"] = (_mod(-alpha + tmp), math.sqrt(p2), _mod(beta - tmp)) if p2 >= 0 else None
+    p2 = 2 + d * d - 2 * cab + 2 * d * (sb - sa)
+    tmp = math.atan2(ca - cb, d - sa + sb)
+    out["RSR"] = (_mod(alpha - tmp), math.sqrt(p2), _mod(-beta + tmp)) if p2 >= 0 else None
+    p2 = -2 + d * d + 2 * cab + 2 * d * (sa + sb)
+    if p2 >= 0:
+        p = math.sqrt(p2)
+        tmp = math.atan2(-ca - cb, d + sa + sb) - math.atan2(-2.0, p)
+        out["LSR"] = (_mod(-alpha + tmp), p, _mod(-beta + tmp))
+    p2 = -2 + d * d + 2 * cab - 2 * d * (sa + sb)
+    if p2 >= 0:
+        p = math.sqrt(p2)
+        tmp = math.atan2(ca + cb, d - sa - sb) - math.atan2(2.0, p)
+        out["RSL"] = (_mod(alpha - tmp), p, _mod(beta - tmp))
+    c = (6 - d * d + 2 * cab + 2 * d * (sa - sb)) / 8
+    if abs(c) <= 1:
+        p = _mod(_TWO_PI - math.acos(c))
+        t = _mod(alpha - math.atan2(ca - cb, d - sa + sb) + p / 2)
+        out["RLR"] = (t, p, _mod(alpha - beta - t + p))
+    c = (6 - d * d + 2 * cab + 2 * d * (sb - sa)) / 8
+    if abs(c) <= 1:
+        p = _mod(_TWO_PI - math.acos(c))
+        t = _mod(-alpha - math.atan2(ca - cb, d + sa - sb) + p / 2)
+        out["LRL"] = (t, p, _mod(beta - alpha - t + p))
+    return out
+
+
+def _sample(start: np.ndarray, word: str, lengths: tuple[float, float, float], radius: float,
+            step: float) -> np.ndarray:
+    """Poses (N, 3) every ``step`` metres along a Dubins word from ``start`` (exact arcs)."""
+    x, y, yaw = start
+    out = [(x, y, yaw)]
+    for kind, length in zip(word, lengths):
+        metres = length * radius
+        n = max(1, math.ceil(metres / step))
+        ds = metres / n
+        for _ in range(n):
+            if kind == "S":
+                x, y = x + ds * math.cos(yaw), y + ds * math.sin(yaw)
+            else:
+                sign = 1.0 if kind == "L" else -1.0
+                turn = sign * ds / radius
+                x += sign * radius * (math.sin(yaw + turn) - math.sin(yaw))
+                y += sign * radius * (math.cos(yaw) - math.cos(yaw + turn))
+                yaw += turn
+            out.append((x, y, yaw))
+    return np.array(out)
+
+
+def dubins_paths(start: tuple[float, float, float], goal: tuple[float, float, float], radius: float,
+                 step: float = 0.1) -> list[np.ndarray]:
+    """Every Dubins path (forward, turning radius ``radius``) from ``start`` to ``goal``, shortest first."""
+    s, g = np.asarray(start, np.float64), np.asarray(goal, np.float64)
+    dx, dy = g[0] - s[0], g[1] - s[1]
+    theta = math.atan2(dy, dx)
+    words = _words(_mod(s[2] - theta), _mod(g[2] - theta), math.hypot(dx, dy) / radius)
+    paths = []
+    for word, lengths in words.items():
+        if lengths is None:
+            continue
+        path = _sample(s, word, lengths, radius, step)
+        end = path[-1]
+        if math.hypot(end[0] - g[0], end[1] - g[1]) < 0.05 and abs(wrap_angle(end[2] - g[2])) < 0.02:
+            paths.append(path)
+    return sorted(paths, key=len)
+
+
+def _straight(start: np.ndarray, goal: np.ndarray, step: float) -> np.ndarray:
+    """Poses from ``start`` to ``goal`` along a line with the goal's heading."""
+    n = max(1, math.ceil(float(np.hypot(*(goal[:2] - start[:2]))) / step))
+    xy = start[:2] + (goal[:2] - start[:2]) * np.linspace(0, 1, n + 1)[:, None]
+    return np.column_stack([xy, np.full(n + 1, goal[2])])
+
+
+@dataclass
+class GeometricParker:
+    """Plans a collision-free forward path into a slot and tracks it (pure pursuit + speed profile)."""
+
+    vehicle: VehicleParams = VehicleParams()
+    radius_factors: tuple[float, ...] = (1.1, 1.3, 1.6)
+    entry_offsets: tuple[float, ...] = (-1.5, -0.8, 0.0, 1.0, 2.0)
+    margin: float = 0.1
+    lookahead: float = 1.5
+    cruise: float = 1.2
+    step: float = 0.1
+
+    def __post_init__(self) -> None:
+        self.path: np.ndarray | None = None
+        self._arc: np.ndarray | None = None
+        self._index = 0
+
+    def _clear(self, path: np.ndarray, obstacles: Obstacles) -> bool:
+        return not any(obstacles.hits(footprint(p, self.vehicle, self.margin)).any() for p in path[::2])
+
+    def plan(self, pose: tuple[float, float, float], slot: dict[str, Any], obstacles: Obstacles) -> np.ndarray | None:
+        """Shortest collision-free path (N, 3) of rear-axle poses from ``pose`` to head-in parked in ``slot``."""
+        centre, yaw = slot_pose(slot)
+        x0, x1, _, _ = self.vehicle.extent
+        heading = np.array([math.cos(yaw), math.sin(yaw)])
+        goal = np.array([*(centre - heading * (x0 + x1) / 2), yaw])
+        entrance = np.asarray(slot["corners"], np.float64)[:2].mean(axis=0)
+        depth_in = float(np.dot(goal[:2] - entrance, heading))
+        candidates = []
+        for factor in self.radius_factors:
+            for offset in self.entry_offsets:
+                back = max(depth_in + offset, 0.5)
+                entry = np.array([*(goal[:2] - heading * back), yaw])
+                for path in dubins_paths(pose, tuple(entry), factor * self.vehicle.min_turn_radius, self.step)[:3]:
+                    candidates.append(np.concatenate([path, _straight(entry, goal, self.step)[1:]]))
+        for path in sorted(candidates, key=len):
+            if self._clear(path, obstacles):
+                return path
+        return None
+
+    def choose_slot(self, pose: tuple[float, float, float], world_map: dict[str, Any]
+                    ) -> tuple[int, np.ndarray] | None:
+        """The free slot with the shortest collision-free path from ``pose``, and that path."""
+        obstacles = Obstacles(world_map.get("obstacles", []))
+        best = None
+        for slot in free_slots(world_map):
+            path = self.plan(pose, slot, obstacles)
+            if path is not None and (best is None or len(path) < len(best[1])):
+                best = (slot["id"], path)
+        return best
+
+    def follow(self, path: np.ndarray) -> None:
+        """Start tracking ``path``."""
+        self.path = path
+        seg = np.hypot(*np.diff(path[:, :2], axis=0).T)
+        self._arc = np.concatenate([[0.0], np.cumsum(seg)])
+        self._index = 0
+
+    def act(self, state: np.ndarray) -> np.ndarray:
+        """``[acceleration, steering]`` for the env state ``[x, y, yaw, v, steer, ...]``."""
+        if self.path is None or self._arc is None:
+            raise RuntimeError("GeometricParker.act: no path to follow; call follow(path) first")
+        x, y, yaw, v = (float(s) for s in state[:4])
+        window = self.path[self._index:self._index + 40, :2]
+        self._index += int(np.argmin(np.hypot(window[:, 0] - x, window[:, 1] - y)))
+        remaining = self._arc[-1] - self._arc[self._index]
+        end = self.path[-1]
+        target_s = self._arc[self._index] + self.lookahead
+        if target_s <= self._arc[-1]:
+            tx, ty = self.path[np.searchsorted(self._arc, target_s), :2]
+        else:
+            extra = target_s - self._arc[-1]
+            tx, ty = end[0] + extra * math.cos(end[2]), end[1] + extra * math.sin(end[2])
+        alpha = math.atan2(ty - y, tx - x) - yaw
+        ld = max(math.hypot(tx - x, ty - y), 1e-3)
+        steer = math.atan2(2 * self.vehicle.wheelbase * math.sin(alpha), ld)
+        along = (end[0] - x) * math.cos(end[2]) + (end[1] - y) * math.sin(end[2])
+        if self._index >= len(self.path) - 1:
+            remaining = max(along, 0.0)
+        v_ref = min(self.cruise, math.sqrt(2 * 0.8 * max(remaining - 0.05, 0.0)))
+        accel = np.clip(2.0 * (v_ref - v), -self.vehicle.max_decel, self.vehicle.max_accel)
+        return np.array([accel, np.clip(steer, -self.vehicle.max_steer, self.vehicle.max_steer)], np.float32)
+
+
+def run_episode(env: ParkingEnv, seed: int, parker: GeometricParker | None = None,
+                on_step: Callable[[ParkingEnv], None] | None = None) -> dict[str, Any]:
+    """Reset with ``seed``, pick the free slot with the best path, drive into it; returns the final info + steps."""
+    parker = parker or GeometricParker(env.vehicle)
+    _, info = env.reset(seed=seed)
+    chosen = parker.choose_slot(info["pose"], env.world_map)
+    if chosen is None:
+        return {**info, "steps": 0, "planned": False}
+    obs, info = env.reset(seed=seed, options={"slot": chosen[0]})
+    parker.follow(chosen[1])
+    steps, done = 0, False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(parker.act(obs["state"]))
+        steps, done = steps + 1, terminated or truncated
+        if on_step is not None:
+            on_step(env)
+    return {**info, "steps": steps, "planned": True}

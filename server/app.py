@@ -1,0 +1,125 @@
+"""``create_app``: the FastAPI app over a scenes folder (or given bundles), with error mapping and metrics.
+
+Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is allowed:
+422 bad request values, 404 unknown scene or route, 401 missing key, 413 body too large,
+503 (with Retry-After) when the render queue is full.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from parksim.bundle import Bundle
+from parksim.client import LocalSim, RequestError
+
+from .metrics import Metrics
+from .pool import PoolBusy, RenderPool
+from .routes import VIEWER_DIR, protected, router
+from .scenes import SceneRegistry, UnknownScene
+from .settings import Settings
+
+__all__ = ["create_app"]
+
+
+def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path]) -> SceneRegistry:
+    """A registry from a scenes folder, a registry, or ``{id: bundle or bundle folder}``."""
+    if isinstance(scenes, SceneRegistry):
+        return scenes
+    if isinstance(scenes, Mapping):
+        return SceneRegistry(LocalSim(b, scene_id) for scene_id, b in scenes.items())
+    return SceneRegistry.from_dir(scenes)
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    """Pydantic's errors as one readable line: where, what is wrong."""
+    parts = []
+    for err in exc.errors():
+        if err.get("type") == "json_invalid":
+            parts.append(f"the request body is not valid JSON ({err.get('ctx', {}).get('error', 'parse error')})")
+            continue
+        loc = ".".join(str(p) for p in err.get("loc", ()) if p not in ("query", "body", "path"))
+        msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
+        parts.append(f"{loc or 'request'}: {msg}")
+    return "; ".join(parts)
+
+
+def _error(status: int, detail: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse({"detail": detail}, status_code=status, headers=headers)
+
+
+def _install_errors(app: FastAPI) -> None:
+    """Map request errors to 4xx/503 with a clear message."""
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
+        return _error(422, _validation_message(exc))
+
+    @app.exception_handler(RequestError)
+    async def _bad_request(_: Request, exc: RequestError) -> JSONResponse:
+        return _error(422, str(exc))
+
+    @app.exception_handler(UnknownScene)
+    async def _unknown_scene(_: Request, exc: UnknownScene) -> JSONResponse:
+        return _error(404, str(exc.args[0]))
+
+    @app.exception_handler(PoolBusy)
+    async def _busy(_: Request, exc: PoolBusy) -> JSONResponse:
+        return _error(503, str(exc), {"Retry-After": str(exc.retry_after)})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        detail = exc.detail
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = f"no route {request.url.path}; see /docs for the API"
+        elif exc.status_code == 405:
+            detail = f"method {request.method} is not allowed on {request.url.path}; see /docs"
+        return _error(exc.status_code, str(detail), getattr(exc, "headers", None))
+
+
+def _install_middleware(app: FastAPI) -> None:
+    """Body size limit and per-request metrics (labelled by route template, not by raw path)."""
+
+    @app.middleware("http")
+    async def _observe(request: Request, call_next: Any) -> Any:
+        start = time.perf_counter()
+        limit = app.state.settings.max_body_bytes
+        length = request.headers.get("content-length")
+        if request.method in ("POST", "PUT", "PATCH") and (length is None or not length.isdigit() or int(length) > limit):
+            response = _error(413 if length and length.isdigit() else 411,
+                              f"the request body must come with a Content-Length of at most {limit} bytes")
+        else:
+            response = await call_next(request)
+        route = request.scope.get("route")
+        app.state.metrics.request(getattr(route, "path", "unmatched"), request.method, response.status_code,
+                                  time.perf_counter() - start)
+        return response
+
+
+def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path],
+               settings: Settings | None = None) -> FastAPI:
+    """The simulator app serving ``scenes`` (loaded now, once) under ``settings`` (default limits)."""
+    settings = settings or Settings()
+    registry = _registry(scenes)
+
+    app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__,
+                  description="Renders of reconstructed parking garages (four fisheye views and a BEV) at any ego "
+                              "pose, for planners in closed loop. Poses are T_world_vehicle in metres and radians.")
+    app.state.settings = settings
+    app.state.registry = registry
+    app.state.metrics = Metrics()
+    app.state.pool = RenderPool(settings.workers, settings.queue_size, settings.render_timeout_s,
+                                settings.retry_after_s)
+    _install_errors(app)
+    _install_middleware(app)
+    app.include_router(router)
+    app.include_router(protected)
+    app.mount("/viewer", StaticFiles(directory=VIEWER_DIR), name="viewer")
+    return app

@@ -1,0 +1,115 @@
+"""One render request as a job: validate against the scene and limits, render on the pool, encode the reply.
+
+Everything slow (rendering and encoding) runs inside the pool's worker thread; the event loop only
+validates and hands bytes back.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from parksim.client import Frame, LocalSim, RequestError, encode_npz
+
+from .pool import RenderPool
+from .scenes import SceneRegistry, check_pose
+from .schemas import Pose, RenderMeta
+from .settings import Settings
+
+__all__ = ["RenderJob", "Reply", "MEDIA_TYPES"]
+
+MEDIA_TYPES = {"npz": "application/x-npz", "png": "image/png", "jpeg": "image/jpeg"}
+
+
+@dataclass
+class Reply:
+    """Encoded body, its media type and the job's metadata."""
+
+    body: bytes
+    media_type: str
+    meta: RenderMeta
+
+
+def encode_image(image: np.ndarray, fmt: Literal["png", "jpeg"], jpeg_quality: int) -> bytes:
+    """uint8 RGB -> PNG or JPEG bytes."""
+    import cv2
+
+    params = [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality] if fmt == "jpeg" else []
+    ok, buf = cv2.imencode(f".{'jpg' if fmt == 'jpeg' else 'png'}", np.ascontiguousarray(image[..., ::-1]), params)
+    if not ok:
+        raise RuntimeError(f"{fmt} encoding failed for an image of shape {image.shape}")
+    return buf.tobytes()
+
+
+@dataclass
+class RenderJob:
+    """A validated request: which scene, poses, views and encoding."""
+
+    sim: LocalSim
+    poses: list[Pose]
+    cameras: list[str]
+    bev: bool
+    scale: float
+    depth: bool
+    fmt: Literal["npz", "png", "jpeg"]
+    batch: bool
+
+    @classmethod
+    def build(cls, registry: SceneRegistry, settings: Settings, scene: str | None, poses: list[Pose],
+              cameras: list[str] | None, bev: bool, scale: float, depth: bool,
+              fmt: Literal["npz", "png", "jpeg"] = "npz", batch: bool = False) -> "RenderJob":
+        """Check everything that can be checked before rendering; ``RequestError`` says what is wrong."""
+        sim = registry.get(scene)
+        if not settings.min_scale <= scale <= settings.max_scale:
+            raise RequestError(f"scale={scale:g} is out of range: it must be in [{settings.min_scale:g}, "
+                               f"{settings.max_scale:g}]")
+        if len(poses) > settings.max_batch:
+            raise RequestError(f"{len(poses)} poses in one request; at most {settings.max_batch} are allowed")
+        names = sim.check(cameras, scale)
+        if not names and not bev:
+            raise RequestError("nothing to render: ask for at least one camera, or bev=on")
+        if fmt != "npz" and len(names) + int(bev) != 1:
+            raise RequestError(f"format={fmt} returns one image: ask for exactly one view (cameras=NAME with bev=off, "
+                               f"or cameras= (empty) with bev=on), or use format=npz")
+        if fmt != "npz" and depth:
+            raise RequestError(f"depth is only returned in format=npz, not {fmt}")
+        for pose in poses:
+            check_pose(sim, pose, settings)
+        return cls(sim, poses, names, bev, scale, depth, fmt, batch)
+
+    def _run(self, jpeg_quality: int) -> tuple[bytes, dict[str, float], list[Frame]]:
+        """Render every pose and encode (runs on a pool thread)."""
+        frames = [self.sim.render(_pose_values(p), self.cameras, self.bev, self.scale, self.depth)
+                  for p in self.poses]
+        timings = {k: sum(f.timings.get(k, 0.0) for f in frames) for k in ("views", "bev")}
+        start = time.perf_counter()
+        if self.fmt == "npz":
+            body = encode_npz(frames, self._meta(frames[0], timings).model_dump(), self.batch)
+        else:
+            f = frames[0]
+            body = encode_image(f.bev if self.bev else f.images[self.cameras[0]], self.fmt, jpeg_quality)
+        timings["encode"] = time.perf_counter() - start
+        return body, timings, frames
+
+    def _meta(self, frame: Frame, timings: dict[str, float]) -> RenderMeta:
+        sizes = {n: [int(a.shape[1]), int(a.shape[0])] for n, a in frame.images.items()}
+        if frame.bev is not None:
+            sizes["bev"] = [int(frame.bev.shape[1]), int(frame.bev.shape[0])]
+        return RenderMeta(scene=self.sim.id, poses=self.poses, cameras=self.cameras, bev=self.bev, scale=self.scale,
+                          sizes=sizes, timings_ms={k: round(v * 1000, 3) for k, v in timings.items()})
+
+    async def run(self, pool: RenderPool, jpeg_quality: int) -> Reply:
+        """Render and encode on ``pool``; the reply's metadata carries queue, views, bev and encode times."""
+        (body, timings, frames), queued = await pool.run(lambda: self._run(jpeg_quality))
+        timings["queue"] = queued
+        return Reply(body, MEDIA_TYPES[self.fmt], self._meta(frames[0], timings))
+
+
+def _pose_values(pose: Pose) -> list[float]:
+    """``[x, y, yaw]`` for a ground pose (the exact path the in-process env takes), else all six values."""
+    if pose.z == 0 and pose.roll == 0 and pose.pitch == 0:
+        return [pose.x, pose.y, pose.yaw]
+    return pose.values()

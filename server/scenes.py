@@ -1,0 +1,75 @@
+"""Scene registry: every bundle under the scenes folder loaded once at start-up and shared by all requests.
+
+Each scene is a ``parksim.client.LocalSim``, which caches its per-scale precomputation (scaled rig,
+IPM grids and blend weights); renders reuse it. ``check_pose`` keeps poses inside the scene.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Iterable
+
+from parksim.bundle import META, BundleError
+from parksim.client import LocalSim, RequestError
+
+from .schemas import Pose
+from .settings import Settings
+
+__all__ = ["SceneRegistry", "UnknownScene", "check_pose"]
+
+
+class UnknownScene(LookupError):
+    """A request names a scene that is not loaded; the message lists the loaded ones."""
+
+
+class SceneRegistry:
+    """Loaded scenes by id (bundle folder name), in sorted order; the first is the default."""
+
+    def __init__(self, sims: Iterable[LocalSim]) -> None:
+        self.sims = {s.id: s for s in sorted(sims, key=lambda s: s.id)}
+        if not self.sims:
+            raise BundleError("no scene to serve")
+
+    @classmethod
+    def from_dir(cls, scenes_dir: str | Path) -> "SceneRegistry":
+        """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle)."""
+        root = Path(scenes_dir)
+        if not root.is_dir():
+            raise BundleError(f"scenes folder not found: {root}")
+        dirs = [root] if (root / META).is_file() else sorted(d for d in root.iterdir() if (d / META).is_file())
+        if not dirs:
+            raise BundleError(f"{root}: no scene bundle (a folder with {META}) in it")
+        return cls(LocalSim.from_dir(d) for d in dirs)
+
+    @property
+    def ids(self) -> list[str]:
+        return list(self.sims)
+
+    def get(self, scene_id: str | None) -> LocalSim:
+        """The scene ``scene_id`` (the default scene when None)."""
+        if scene_id is None:
+            return next(iter(self.sims.values()))
+        if scene_id not in self.sims:
+            raise UnknownScene(f"unknown scene {scene_id!r}; loaded scenes: {self.ids}")
+        return self.sims[scene_id]
+
+
+def check_pose(sim: LocalSim, pose: Pose, settings: Settings) -> None:
+    """``RequestError`` unless ``pose`` lies within the scene bounds plus the margin and is not tilted too far."""
+    m = settings.pose_margin_m
+    z_lo, z_hi = sim.bounds["z"]
+    limits = {"x": (sim.bounds["x"][0] - m, sim.bounds["x"][1] + m), "y": (sim.bounds["y"][0] - m, sim.bounds["y"][1] + m),
+              "z": (z_lo - 1.0, z_hi)}
+    for axis, (lo, hi) in limits.items():
+        v = getattr(pose, axis)
+        if not lo <= v <= hi:
+            why = f"scene bounds plus a {m:g} m margin" if axis != "z" else "1 m below the floor up to the ceiling"
+            raise RequestError(f"pose {axis}={v:g} is outside scene {sim.id!r}: {axis} must be in [{lo:g}, {hi:g}] "
+                               f"({why})")
+    for angle in ("roll", "pitch"):
+        v = getattr(pose, angle)
+        if abs(v) > settings.max_tilt_rad:
+            raise RequestError(f"pose {angle}={v:g} rad is too tilted: |{angle}| must be <= {settings.max_tilt_rad:g} rad")
+    if abs(pose.yaw) > 1e6 * math.pi:
+        raise RequestError(f"pose yaw={pose.yaw:g} rad is too large: |yaw| must be <= {1e6 * math.pi:g} rad")

@@ -1,0 +1,183 @@
+"""Request and response models of the simulator API (pydantic); the handlers in ``routes`` only use them."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, model_validator
+
+__all__ = ["Pose", "parse_pose", "parse_cameras", "RenderQuery", "ViewQuery", "RenderBatchRequest", "RenderMeta",
+           "SceneSummary", "SceneList", "SceneInfo", "Health", "ErrorMessage", "POSE_HELP"]
+
+POSE_HELP = ("ego pose T_world_vehicle as 'x,y,yaw' (metres, radians; z = roll = pitch = 0) or "
+             "'x,y,z,roll,pitch,yaw'; yaw about world z, rotation Rz(yaw) Ry(pitch) Rx(roll)")
+_MAX_POSE_TEXT = 200
+
+
+class Pose(BaseModel):
+    """An ego pose: position (m) of the rear-axle centre on the ground and orientation (rad)."""
+
+    model_config = ConfigDict(extra="forbid")
+    x: FiniteFloat
+    y: FiniteFloat
+    z: FiniteFloat = 0.0
+    roll: FiniteFloat = 0.0
+    pitch: FiniteFloat = 0.0
+    yaw: FiniteFloat
+
+    @model_validator(mode="before")
+    @classmethod
+    def _from_list(cls, value: Any) -> Any:
+        """Accept ``[x, y, yaw]`` and ``[x, y, z, roll, pitch, yaw]`` as well as an object."""
+        if isinstance(value, (list, tuple)):
+            if len(value) == 3:
+                return dict(zip(("x", "y", "yaw"), value))
+            if len(value) == 6:
+                return dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), value))
+            raise ValueError(f"a pose list needs 3 values (x, y, yaw) or 6 (x, y, z, roll, pitch, yaw), got {len(value)}")
+        return value
+
+    def values(self) -> list[float]:
+        """``[x, y, z, roll, pitch, yaw]``."""
+        return [self.x, self.y, self.z, self.roll, self.pitch, self.yaw]
+
+
+def parse_pose(text: str) -> Pose:
+    """``'x,y,yaw'`` or ``'x,y,z,roll,pitch,yaw'`` -> ``Pose``; ``ValueError`` says what is wrong."""
+    if len(text) > _MAX_POSE_TEXT:
+        raise ValueError(f"pose text is longer than {_MAX_POSE_TEXT} characters")
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (3, 6):
+        raise ValueError(f"pose needs 3 comma-separated numbers (x,y,yaw) or 6 (x,y,z,roll,pitch,yaw), "
+                         f"got {len(parts)} in {text!r}")
+    values = []
+    for p in parts:
+        try:
+            v = float(p)
+        except ValueError:
+            raise ValueError(f"pose value {p!r} is not a number (pose {text!r})") from None
+        if not math.isfinite(v):
+            raise ValueError(f"pose value {p!r} is not finite; every pose value must be a finite number")
+        values.append(v)
+    return Pose.model_validate(values)
+
+
+def parse_cameras(text: str | None) -> list[str] | None:
+    """``'front,left'`` -> ``['front', 'left']``; '' -> [] (no camera: BEV only); None -> None (all cameras)."""
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if len(set(names)) != len(names):
+        raise ValueError(f"cameras lists a camera twice: {text!r}")
+    return names
+
+
+def _checked(parse: Any) -> AfterValidator:
+    """A validator that runs ``parse`` for its errors and keeps the text as given."""
+    return AfterValidator(lambda v: (parse(v), v)[1])
+
+
+PoseText = Annotated[str, _checked(parse_pose)]
+CamerasText = Annotated[str | None, _checked(parse_cameras)]
+
+_SCENE = Field(None, max_length=200, description="scene id (GET /scenes); default: the first scene")
+_SCALE = Field(1.0, description="resolution factor of the fisheye views (1 = the rig's size); the server's "
+                                "limits are in GET /healthz")
+_API_KEY = Field(None, max_length=500, description="API key, when the server requires one and the "
+                                                 "X-API-Key header cannot be sent (e.g. an <img> tag)")
+_DEPTH = Field(False, description="also return per-camera depth (float32, metres along the ray; npz only)")
+
+
+class RenderQuery(BaseModel):
+    """Query of ``GET /render``: what to render, where, and how to encode it."""
+
+    model_config = ConfigDict(extra="forbid")
+    pose: PoseText = Field(..., max_length=_MAX_POSE_TEXT, description=POSE_HELP, examples=["12.0,0.5,0.0"])
+    scene: str | None = _SCENE
+    cameras: CamerasText = Field(None, max_length=1000, description="comma-separated camera names (default: all "
+                                "of the rig; empty: none, e.g. with bev=on for the BEV only)")
+    bev: bool = Field(False, description="also render the bird's-eye view (on/off, true/false, 1/0)")
+    scale: float = _SCALE
+    depth: bool = _DEPTH
+    api_key: str | None = _API_KEY
+    format: Literal["npz", "png", "jpeg"] = Field("npz", description="npz: uint8 images + metadata for programs; "
+                                                  "png/jpeg: one image, so exactly one view must be asked for")
+
+
+class ViewQuery(BaseModel):
+    """Query of ``GET /render/{view}.{ext}``: one camera (or ``bev``) as an image file."""
+
+    model_config = ConfigDict(extra="forbid")
+    pose: PoseText = Field(..., max_length=_MAX_POSE_TEXT, description=POSE_HELP, examples=["12.0,0.5,0.0"])
+    scene: str | None = _SCENE
+    scale: float = _SCALE
+    api_key: str | None = _API_KEY
+
+
+class RenderBatchRequest(BaseModel):
+    """Body of ``POST /render``: several poses rendered with the same options, answered as one npz."""
+
+    model_config = ConfigDict(extra="forbid")
+    poses: list[Pose] = Field(..., min_length=1, max_length=1024,
+                              description="poses as [x, y, yaw], [x, y, z, roll, pitch, yaw] or objects; "
+                                          "the server's batch limit is in GET /healthz")
+    scene: str | None = _SCENE
+    cameras: list[str] | None = Field(None, max_length=64, description="camera names (default: all; []: none)")
+    bev: bool = Field(False, description="also render the bird's-eye view")
+    scale: float = _SCALE
+    depth: bool = _DEPTH
+
+
+class RenderMeta(BaseModel):
+    """The ``meta`` entry of a render npz (also summarised in X-Render-* headers)."""
+
+    scene: str
+    poses: list[Pose]
+    cameras: list[str]
+    bev: bool
+    scale: float
+    sizes: dict[str, list[int]] = Field(description="[width, height] per returned view")
+    timings_ms: dict[str, float] = Field(description="queue, views, bev, encode")
+
+
+class SceneSummary(BaseModel):
+    """One entry of ``GET /scenes``."""
+
+    id: str
+    gaussians: int
+    cameras: list[str]
+
+
+class SceneList(BaseModel):
+    scenes: list[SceneSummary]
+
+
+class SceneInfo(BaseModel):
+    """``GET /scenes/{id}``: rig (cameras, intrinsics, extrinsics), BEV spec, bounds, slot map, metadata."""
+
+    id: str
+    gaussians: int
+    cameras: list[str]
+    rig: dict[str, Any]
+    bev: dict[str, Any]
+    bounds: dict[str, list[float]] = Field(description="scene extent per axis (m); poses may lie up to "
+                                                       "pose_margin_m outside it in x and y")
+    pose_margin_m: float
+    map: dict[str, Any] | None = Field(description="world slot map and obstacles (parksim synth map.json), if any")
+    meta: dict[str, Any]
+
+
+class Health(BaseModel):
+    """``GET /healthz``: liveness, loaded scenes, render pool state and request limits."""
+
+    status: Literal["ok"]
+    scenes: list[str]
+    pool: dict[str, int]
+    limits: dict[str, float]
+
+
+class ErrorMessage(BaseModel):
+    """Every 4xx/503 body: what was wrong and what is allowed."""
+
+    detail: str

@@ -1,0 +1,40 @@
+"""Baseline geometric planner: Dubins paths are exact, and it parks in closed loop through the env API."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from parksim.env import ParkingEnv
+from parksim.planners import dubins_paths, run_episode
+from parksim.vehicle import wrap_angle
+from sim_fixtures import make_bundle
+
+_coord = st.floats(-15, 15)
+
+
+@settings(max_examples=30, deadline=None)
+@given(gx=_coord, gy=_coord, gyaw=st.floats(-math.pi, math.pi), syaw=st.floats(-math.pi, math.pi))
+def test_dubins_paths_reach_the_goal_with_bounded_curvature(gx, gy, gyaw, syaw):
+    paths = dubins_paths((0.0, 0.0, syaw), (gx, gy, gyaw), 4.0, step=0.1)
+    assert paths, "some Dubins word always exists"
+    for p in paths:
+        assert np.hypot(*(p[-1, :2] - (gx, gy))) < 0.05 and abs(wrap_angle(p[-1, 2] - gyaw)) < 0.02
+        turn = np.abs(wrap_angle(np.diff(p[:, 2])))
+        step = np.hypot(*np.diff(p[:, :2], axis=0).T)
+        assert (turn <= step / 4.0 + 1e-6).all()
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    bundle = make_bundle(tmp_path_factory.mktemp("planner") / "tiny", n=300, bev_px=64)
+    return ParkingEnv(bundle=bundle, cameras=[], max_steps=400)
+
+
+def test_planner_parks_in_a_test_episode(env):
+    result = run_episode(env, seed=1)
+    assert result["planned"] and result["is_success"] and not result["collision"], result
+    assert result["distance"] < env.pos_tol and result["heading_error"] < env.yaw_tol
