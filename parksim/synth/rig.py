@@ -1,7 +1,7 @@
 """The synthetic ego car: a production-like AVM rig (four 190 deg fisheyes) and its body box.
 
 Vehicle frame: origin on the ground under the rear axle, x forward, y left, z up. The
-car is 4.7 m long (0.95 m rear overhang) and 1.8 m wide; the front camera sits in the
+car is ``parksim.vehicle.VehicleParams`` (4.7 m x 1.8 m, 0.95 m rear overhang); the front camera sits in the
 bumper, the rear one above the number plate, the side ones under the mirrors looking
 down and out, as on a production surround-view system.
 """
@@ -16,11 +16,12 @@ import torch
 from ..camera import OpenCVFisheye
 from ..geometry import make_transform
 from ..rig import BEVSpec, Rig, RigCamera
+from ..vehicle import VehicleParams
 from .layout import Box
 
 __all__ = ["avm_rig", "ego_box", "EGO_EXTENT", "CAR_CENTRE_X"]
 
-EGO_EXTENT = (-0.95, 3.75, -0.9, 0.9)
+EGO_EXTENT = VehicleParams().extent
 """Ego body footprint in the vehicle frame: (x_min, x_max, y_min, y_max)."""
 CAR_CENTRE_X = 1.4
 """Vehicle-frame x of the car's centre (the BEV is centred there)."""
