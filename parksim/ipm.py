@@ -4,8 +4,8 @@ Each BEV pixel is a ground point (z = 0) in the vehicle frame; it is projected i
 camera through the exact lens model and sampled bilinearly, and the cameras are blended
 with smooth weights that sum to one wherever any camera sees the point (ParkGaussian,
 "Differentiable Surround-View IPM"). Grids and weights depend only on the rig and the BEV
-spec, so they are built once and every call is a few ``grid_sample`` calls: cheap, and
-differentiable with respect to the images.
+spec, so they are built once and every call is one ``grid_sample`` per camera over only the
+BEV pixels it contributes to (its weight > 0): cheap, and differentiable with respect to the images.
 """
 
 from __future__ import annotations
@@ -91,9 +91,11 @@ class IPM:
         self.mask = seen
         safe_total = torch.where(seen, total, torch.ones_like(total))
         self.weights = {n: torch.where(seen, w / safe_total, torch.zeros_like(w)).to(dtype) for n, w in raw.items()}
-        self._grids = {n: _to_grid(self.pixel_coords[n], rig.cameras[n].model.width,
-                                   rig.cameras[n].model.height).to(dtype).unsqueeze(0)
-                       for n in self.cameras}
+        self._taps: dict[str, tuple[Tensor, Tensor, Tensor]] = {}
+        for n in self.cameras:
+            rows = self.weights[n].flatten().nonzero().squeeze(1)
+            grid = _to_grid(self.pixel_coords[n], rig.cameras[n].model.width, rig.cameras[n].model.height)
+            self._taps[n] = (rows, grid.reshape(1, 1, -1, 2)[:, :, rows].to(dtype), self.weights[n].flatten()[rows])
         self._back: dict[str, tuple[Tensor, Tensor]] = {}
 
     @staticmethod
@@ -125,11 +127,13 @@ class IPM:
         out = None
         for name in self.cameras:
             x, batched, squeeze_c = _as_nchw(images[name])
-            grid = self._grids[name].to(x.dtype).expand(x.shape[0], -1, -1, -1)
-            sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-            term = sampled * self.weights[name].to(x.dtype)
-            out = term if out is None else out + term
-        return _from_nchw(out, batched, squeeze_c)
+            rows, grid, weight = self._taps[name]
+            grid = grid.to(x.dtype).expand(x.shape[0], -1, -1, -1)
+            sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
+            if out is None:
+                out = x.new_zeros(x.shape[0], x.shape[1], self.spec.height * self.spec.width)
+            out = out.index_add(2, rows, sampled * weight.to(x.dtype))
+        return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
 
     def _back_grid(self, name: str) -> tuple[Tensor, Tensor]:
         """Per fisheye pixel: where its ray meets the ground in the BEV (grid) and whether it does."""

@@ -68,6 +68,11 @@ def _rig_view(rig: Rig, scale: float, names: tuple[str, ...]) -> _RigView:
     return view
 
 
+def _rows(t: Tensor, rows: Tensor | None) -> Tensor:
+    """``t`` itself when every row is kept (``rows`` None), else the rows ``rows`` (gathered, differentiably)."""
+    return t if rows is None else t.index_select(0, rows)
+
+
 def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
            bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
            method: str = "ut", ut_params: UTParams | None = None) -> RenderResult:
@@ -93,15 +98,15 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         T_world_camera = T_world_vehicle @ cam.T_vehicle_camera
         T_camera_world = invert_transform(T_world_camera).to(dtype)
         R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
-        proj = project_gaussians(scene.means @ R.T + t, (scene.quats, scene.log_scales, R), cam.model,
+        proj = project_gaussians(torch.addmm(t, scene.means, R.T), (scene.quats, scene.log_scales, R), cam.model,
                                  method=method, ut_params=ut_params)
-        keep = proj.index[proj.valid]
-        dirs = scene.means[keep] - T_world_camera[:3, 3].to(dtype)
-        colors = eval_sh(scene.sh[keep], dirs / dirs.norm(dim=-1, keepdim=True), scene.sh_degree)
-        v = proj.valid
+        rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
+        keep = _rows(proj.index, rows)
+        dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(dtype)
+        colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True), scene.sh_degree)
         images[name], alphas[name], depth_sum = rasterize(
-            proj.means2d[v], proj.conics[v], colors, opacity[keep], proj.depths[v],
-            cam.model.width, cam.model.height, backend=backend, bg=background)
+            _rows(proj.means2d, rows), _rows(proj.conics, rows), colors, opacity.index_select(0, keep),
+            _rows(proj.depths, rows), cam.model.width, cam.model.height, backend=backend, bg=background)
         covered = alphas[name] > _MIN_ALPHA_FOR_DEPTH
         depths[name] = torch.where(covered, depth_sum / torch.where(covered, alphas[name], 1.0), 0.0)
     bev_image = None

@@ -7,7 +7,9 @@ instead of ~50 eager torch ops each sweeping memory. Serves the three lens model
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,7 +20,7 @@ from torch import Tensor
 from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
 from . import project_kernels as pk
 
-__all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused"]
+__all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "keep_torch_threads"]
 
 _MODEL_IDS: dict[type[CameraModel], int] = {
     OpenCVFisheye: pk.OPENCV_FISHEYE, RadialPolyFisheye: pk.RADIAL_POLY, Pinhole: pk.PINHOLE}
@@ -84,6 +86,22 @@ def _opts(cfg: FusedUTConfig, camera: CameraModel, dtype: torch.dtype) -> np.nda
     return o
 
 
+@contextlib.contextmanager
+def keep_torch_threads() -> Iterator[None]:
+    """Give torch back its intra-op thread count after numba kernels run inside the block.
+
+    Numba's OpenMP layer sets the OpenMP thread count of the launching thread to its own on every parallel
+    launch, and torch reads that same count: with torch at 1 thread and numba at 2, every torch op after a
+    kernel ran on 2 threads, which on the loaded 2-core machine made 40 small ops take 970 ms instead of 2 ms.
+    """
+    n = torch.get_num_threads()
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+
+
 def _np(t: Tensor) -> np.ndarray:
     """Contiguous numpy view (or copy) of a detached CPU tensor."""
     return np.ascontiguousarray(t.detach().numpy())
@@ -105,12 +123,13 @@ class _ProjectUT(torch.autograd.Function):
         m_np, q_np, ls_np = _np(means), _np(quats), _np(log_scales)
         rot_np = np.ascontiguousarray(rot.detach().to(torch.float64).numpy())
         keep = np.empty(len(m_np), dtype=np.bool_)
-        pk.cull(m_np, ls_np, lens, opts, keep)
-        index = np.flatnonzero(keep)
-        m, dt = len(index), m_np.dtype
-        out = (np.empty((m, 2), dt), np.empty((m, 3), dt), np.empty((m, 3), dt), np.empty(m, dt),
-               np.empty(m, dt), np.empty(m, np.bool_))
-        pk.forward(index, m_np, q_np, ls_np, rot_np, _MODEL_IDS[type(camera)], lens, opts, *sets, *out)
+        with keep_torch_threads():
+            pk.cull(m_np, ls_np, lens, opts, keep)
+            index = np.flatnonzero(keep)
+            m, dt = len(index), m_np.dtype
+            out = (np.empty((m, 2), dt), np.empty((m, 3), dt), np.empty((m, 3), dt), np.empty(m, dt),
+                   np.empty(m, dt), np.empty(m, np.bool_))
+            pk.forward(index, m_np, q_np, ls_np, rot_np, _MODEL_IDS[type(camera)], lens, opts, *sets, *out)
         ctx.save_for_backward(means, quats, log_scales, rot)
         ctx.state = (index, lens, opts, sets, _MODEL_IDS[type(camera)])
         index_t, means2d, conics, cov2d, depths, radii, valid = (torch.from_numpy(a) for a in (index, *out))
@@ -132,10 +151,11 @@ class _ProjectUT(torch.autograd.Function):
         g_quats = np.zeros(tuple(quats.shape), m_np.dtype)
         g_ls = np.zeros(tuple(log_scales.shape), m_np.dtype)
         g_rot = np.zeros(((m + pk.CHUNK - 1) // pk.CHUNK, pk.N_ROT_GRAD))
-        pk.backward(index, m_np, _np(quats), _np(log_scales),
-                    np.ascontiguousarray(rot.detach().to(torch.float64).numpy()), model, lens, opts, *sets,
-                    grad(g_means2d, (m, 2)), grad(g_conics, (m, 3)), grad(g_cov2d, (m, 3)), grad(g_depths, (m,)),
-                    g_means, g_quats, g_ls, g_rot)
+        with keep_torch_threads():
+            pk.backward(index, m_np, _np(quats), _np(log_scales),
+                        np.ascontiguousarray(rot.detach().to(torch.float64).numpy()), model, lens, opts, *sets,
+                        grad(g_means2d, (m, 2)), grad(g_conics, (m, 3)), grad(g_cov2d, (m, 3)),
+                        grad(g_depths, (m,)), g_means, g_quats, g_ls, g_rot)
         rot_grad = torch.from_numpy(g_rot.sum(0).reshape(3, 3)).to(rot.dtype) if ctx.needs_input_grad[3] else None
         return (torch.from_numpy(g_means), torch.from_numpy(g_quats), torch.from_numpy(g_ls), rot_grad, None, None)
 

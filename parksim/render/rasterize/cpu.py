@@ -9,7 +9,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..project_fast import keep_torch_threads
 from . import kernels
+from .constants import T_MIN
 from .tiles import TileBins, bin_gaussians
 
 
@@ -28,16 +30,17 @@ class _RasterizeCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx: Any, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
-                width: int, height: int, bg: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+                width: int, height: int, bg: Tensor | None, t_min: float) -> tuple[Tensor, Tensor, Tensor]:
         inputs = [_f32(t) for t in (means2d, conics, colors, opacities, depths)]
-        bins = bin_gaussians(*inputs, width, height)
-        order = _heaviest_first(bins)
         rgb = np.empty((height, width, 3), np.float32)
         depth = np.empty((height, width), np.float32)
         t_final = np.empty((height, width), np.float32)
         last = np.empty((height, width), np.int64)
-        kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
-                        width, height, rgb, depth, t_final, last)
+        with keep_torch_threads():
+            bins = bin_gaussians(*inputs, width, height)
+            order = _heaviest_first(bins)
+            kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
+                            width, height, rgb, depth, t_final, last, np.float32(t_min))
         bg32 = np.zeros(3, np.float32) if bg is None else _f32(bg).reshape(3)
         ctx.state = (bins, order, t_final, last, bg32, width, height)
         ctx.like = [(t.dtype, t.device) for t in (means2d, conics, colors, opacities, depths)]
@@ -49,17 +52,23 @@ class _RasterizeCPU(torch.autograd.Function):
     def backward(ctx: Any, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
         bins, order, t_final, last, bg32, width, height = ctx.state
         grad_isect = np.empty((bins.gauss_ids.shape[0], kernels.N_GRAD), np.float32)
-        kernels.backward(bins.offsets, bins.gauss_ids, bins.slot_of, bins.packed, bins.tiles_x, order,
-                         numba.get_num_threads(), width, height, t_final, last,
-                         _f32(g_rgb), _f32(g_alpha), _f32(g_depth), bg32, grad_isect)
         grads = np.zeros((bins.packed.shape[0], kernels.N_GRAD), np.float32)
-        kernels.reduce_by_gaussian(bins.starts, grad_isect, grads)
+        with keep_torch_threads():
+            kernels.backward(bins.offsets, bins.gauss_ids, bins.slot_of, bins.packed, bins.tiles_x, order,
+                             numba.get_num_threads(), width, height, t_final, last,
+                             _f32(g_rgb), _f32(g_alpha), _f32(g_depth), bg32, grad_isect)
+            kernels.reduce_by_gaussian(bins.starts, grad_isect, grads)
         out = torch.from_numpy(grads)
         parts = (out[:, 0:2], out[:, 2:5], out[:, 5:8], out[:, 8], out[:, 9])
-        return (*(p.to(dtype=dtype, device=device) for p, (dtype, device) in zip(parts, ctx.like)), None, None, None)
+        grads_in = (p.to(dtype=dtype, device=device) for p, (dtype, device) in zip(parts, ctx.like))
+        return (*grads_in, None, None, None, None)
 
 
 def rasterize_cpu(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
-                  width: int, height: int, bg: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Numba tile rasterizer; same contract as `parksim.render.rasterize.rasterize` (CPU tensors)."""
-    return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, width, height, bg)
+                  width: int, height: int, bg: Tensor | None = None,
+                  t_min: float = T_MIN) -> tuple[Tensor, Tensor, Tensor]:
+    """Numba tile rasterizer; same contract as `parksim.render.rasterize.rasterize` (CPU tensors).
+
+    ``t_min`` is the early-termination transmittance (0 switches early termination off, for measuring it).
+    """
+    return _RasterizeCPU.apply(means2d, conics, colors, opacities, depths, width, height, bg, t_min)

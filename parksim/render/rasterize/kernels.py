@@ -46,7 +46,7 @@ def _tile_box(tile: int, tiles_x: int, width: int, height: int) -> tuple[int, in
 
 
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
-def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank) -> np.float32:
+def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank, t_min) -> np.float32:
     """Composite one Gaussian over the TILE pixels of a tile row from index i0; returns how many stopped.
 
     The whole row is evaluated (pixels outside the ellipse fail the alpha test): a fixed trip count lets
@@ -64,7 +64,7 @@ def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank) -> np.flo
         alpha, _ = _pair_alpha(o, p0 + dx * (p1 + dx * p2))
         t = state[0, i]
         alive = state[1, i]
-        stop = t * (_ONE - alpha) < _T_MIN
+        stop = t * (_ONE - alpha) < t_min
         w = _ZERO if stop else alpha * t * alive
         state[0, i] = t - w
         state[2, i] += w * cr
@@ -78,11 +78,12 @@ def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank) -> np.flo
 
 
 @numba.njit(fastmath=True, error_model="numpy", cache=True)
-def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, state, row_live, rgb_out, depth_out,
-                  t_out, last_out):
+def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_min, state, row_live, rgb_out,
+                  depth_out, t_out, last_out):
     """Composite one tile front to back, skipping saturated rows and stopping once all pixels are; write it.
 
-    row_live[r] counts the pixels of tile row r still compositing.
+    row_live[r] counts the pixels of tile row r still compositing; a pixel stops before its transmittance
+    would fall below t_min.
     """
     x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
     state[0] = 1.0
@@ -99,7 +100,7 @@ def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, stat
             if row_live[py - y0] < _HALF:
                 continue
             stopped = _forward_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
-                                   p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], np.float32(k - start + 1))
+                                   p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], np.float32(k - start + 1), t_min)
             row_live[py - y0] -= stopped
             alive -= stopped
         if alive < _HALF:
@@ -117,17 +118,18 @@ def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, stat
 
 @numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
 def forward(offsets, gauss_ids, packed, tiles_x, tile_order, n_workers, width, height,
-            rgb_out, depth_out, t_out, last_out):
+            rgb_out, depth_out, t_out, last_out, t_min=_T_MIN):
     """All tiles dealt over n_workers threads: rgb [H,W,3], expected depth, final T, last contributing index.
 
-    last_out is the global intersection index of a pixel's last contributor, below the tile's start if none.
+    last_out is the global intersection index of a pixel's last contributor, below the tile's start if none;
+    t_min is the early-termination threshold (T_MIN; 0 composites every Gaussian).
     """
     for worker in numba.prange(n_workers):
         state = np.empty((7, _PIX), np.float32)
         row_live = np.empty(TILE, np.float32)
         for j in range(worker, tile_order.shape[0], n_workers):
-            _forward_tile(tile_order[j], offsets, gauss_ids, packed, tiles_x, width, height, state, row_live,
-                          rgb_out, depth_out, t_out, last_out)
+            _forward_tile(tile_order[j], offsets, gauss_ids, packed, tiles_x, width, height, t_min, state,
+                          row_live, rgb_out, depth_out, t_out, last_out)
 
 
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
