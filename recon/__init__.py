@@ -1,0 +1,1 @@
+"""Offline reconstruction: train a Gaussian scene from surround-view fisheye data, evaluate it, import COLMAP."""

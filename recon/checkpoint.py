@@ -1,0 +1,56 @@
+"""Training checkpoints: everything a resumed run needs to continue exactly where a killed one stopped.
+
+One file, ``checkpoints/last.pt``, replaced atomically; it holds the parameters, Adam moments,
+the strategy's and camera response's state, the RNG state, the iteration and the wall-clock and CPU time spent.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from parksim.bundle import atomic_write
+
+__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "checkpoint_path", "FORMAT"]
+
+FORMAT = "parksim-recon-checkpoint/1"
+_REQUIRED = ("format", "iteration", "params", "optimizer", "response", "strategy", "rng", "config", "elapsed", "cpu")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, truncated, corrupt or from another format; the message names the file."""
+
+
+def checkpoint_path(out_dir: str | Path) -> Path:
+    """Where a run in ``out_dir`` keeps its checkpoint."""
+    return Path(out_dir) / "checkpoints" / "last.pt"
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Write ``state`` (must hold the required keys) atomically."""
+    missing = [k for k in _REQUIRED if k not in state and k != "format"]
+    if missing:
+        raise ValueError(f"checkpoint state lacks {missing}")
+    atomic_write(path, lambda p: torch.save({"format": FORMAT, **state}, p))
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read and check a checkpoint (tensors only: no code is unpickled)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError, zipfile.BadZipFile, ValueError) as e:
+        raise CheckpointError(f"{path}: corrupt or truncated checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise CheckpointError(f"{path}: not a {FORMAT} checkpoint (found {found!r})")
+    missing = [k for k in _REQUIRED if k not in state]
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint lacks {missing}")
+    return state

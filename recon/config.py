@@ -1,0 +1,169 @@
+"""Training configuration: pydantic models (unknown keys are errors) loaded from YAML files.
+
+The defaults are the paper's numbers (ParkGaussian on 3DGS/3DGUT + gsplat's MCMC strategy);
+``configs/parkgaussian.yaml`` spells them out and shorter CPU schedules override them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+__all__ = ["TrainConfig", "ConfigError", "load_config", "parse_config", "dump_config"]
+
+
+class ConfigError(ValueError):
+    """A config file is missing, not YAML, or does not validate; the message names the file and the keys."""
+
+
+class _Strict(BaseModel):
+    """Base model: a key that is not a field is an error (a typo must not become a silent default)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class LearningRates(_Strict):
+    """Adam learning rates per attribute (3DGS values); ``means`` is multiplied by the scene extent."""
+
+    means: float = Field(1.6e-4, gt=0)
+    means_final_factor: float = Field(0.01, gt=0, le=1, description="position lr decays exponentially to this fraction")
+    sh0: float = Field(2.5e-3, gt=0)
+    shN: float = Field(2.5e-3 / 20, gt=0)
+    opacity: float = Field(0.05, gt=0)
+    scales: float = Field(5e-3, gt=0)
+    quats: float = Field(1e-3, gt=0)
+    response: float = Field(1e-3, ge=0, description="per-camera gain and vignetting (0 disables them)")
+
+
+class InitConfig(_Strict):
+    """Where the initial Gaussians come from and how they start."""
+
+    source: Literal["auto", "points", "colmap", "random"] = "auto"
+    colmap_model: str | None = Field(None, description="COLMAP sparse model folder (source=colmap)")
+    random_count: int = Field(100_000, gt=0)
+    max_points: int = Field(1_000_000, gt=0, description="subsample larger point clouds to this many")
+    opacity: float = Field(0.5, gt=0, lt=1)
+    scale_factor: float = Field(1.0, gt=0, description="initial scale = this x mean distance to 3 nearest points")
+
+
+class MCMCConfig(_Strict):
+    """3DGS-MCMC (Kheradmand et al.) as in gsplat's MCMCStrategy."""
+
+    cap_max: int = Field(1_000_000, gt=0)
+    grow_rate: float = Field(0.05, ge=0)
+    noise_lr: float = Field(5e5, ge=0)
+    refine_start: int = Field(500, ge=0)
+    refine_stop: int = Field(25_000, ge=0)
+    refine_every: int = Field(100, gt=0)
+    min_opacity: float = Field(0.005, gt=0, lt=1)
+    opacity_reg: float = Field(0.01, ge=0)
+    scale_reg: float = Field(0.01, ge=0)
+
+
+class ADCConfig(_Strict):
+    """Adaptive density control of the original 3DGS (clone, split, prune, opacity reset)."""
+
+    grad_threshold: float = Field(2e-4, gt=0)
+    percent_dense: float = Field(0.01, gt=0)
+    refine_start: int = Field(500, ge=0)
+    refine_stop: int = Field(15_000, ge=0)
+    refine_every: int = Field(100, gt=0)
+    reset_every: int = Field(3000, gt=0)
+    min_opacity: float = Field(0.005, gt=0, lt=1)
+    max_screen_fraction: float = Field(0.1, gt=0, description="prune Gaussians larger than this x scene extent")
+    cap_max: int = Field(3_000_000, gt=0)
+
+
+class DensifyConfig(_Strict):
+    """Densification strategy: the paper's MCMC by default, 3DGS ADC as the alternative."""
+
+    strategy: Literal["mcmc", "adc"] = "mcmc"
+    mcmc: MCMCConfig = MCMCConfig()
+    adc: ADCConfig = ADCConfig()
+
+
+class PhotometricConfig(_Strict):
+    """Phase 1: (1 - lambda) L1 + lambda D-SSIM on the fisheye images, masked to the valid pixels."""
+
+    iterations: int = Field(20_000, ge=0)
+    ssim_lambda: float = Field(0.2, ge=0, le=1)
+    sh_degree: int = Field(3, ge=0, le=3)
+    sh_degree_interval: int = Field(1000, gt=0, description="raise the SH degree by one every this many iterations")
+
+
+class SlotAwareConfig(_Strict):
+    """Phase 2 (alignment + slot-aware losses): trained by the slot-aware phase, not by this trainer.
+
+    Its iterations count in the learning-rate schedule so that phase 1 + phase 2 follow the paper's 30k schedule.
+    """
+
+    iterations: int = Field(10_000, ge=0)
+    lambda_align: float = Field(0.001, ge=0)
+    lambda_ipm: float = Field(0.1, ge=0)
+    lambda_cam: float = Field(0.1, ge=0)
+
+
+class RunConfig(_Strict):
+    """Run mechanics: seed, batch, renderer, logging and checkpoint cadence."""
+
+    seed: int = 0
+    batch_size: int = Field(1, gt=0, description="(frame, camera) views rendered per iteration")
+    backend: Literal["auto", "torch", "numba"] = "auto"
+    log_every: int = Field(10, gt=0)
+    checkpoint_every: int = Field(1000, gt=0)
+    eval_every: int = Field(0, ge=0, description="test-frame PSNR/SSIM every this many iterations (0: never)")
+    eval_stride: int = Field(1, gt=0, description="use every n-th test view in periodic evaluation")
+    progress: bool = True
+
+
+class TrainConfig(_Strict):
+    """Everything ``parksim reconstruct`` needs besides the data."""
+
+    run: RunConfig = RunConfig()
+    init: InitConfig = InitConfig()
+    lr: LearningRates = LearningRates()
+    photometric: PhotometricConfig = PhotometricConfig()
+    slot_aware: SlotAwareConfig = SlotAwareConfig()
+    densify: DensifyConfig = DensifyConfig()
+
+    @property
+    def schedule_iterations(self) -> int:
+        """Length of the learning-rate schedule: both phases."""
+        return self.photometric.iterations + self.slot_aware.iterations
+
+
+def _format_errors(err: ValidationError) -> str:
+    """One line per problem: dotted key path and pydantic's message."""
+    return "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors())
+
+
+def parse_config(data: object, source: str) -> TrainConfig:
+    """Validate a mapping as a ``TrainConfig``; ``source`` names it in errors."""
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(f"{source}: invalid config: {_format_errors(e)}") from None
+
+
+def load_config(path: str | Path) -> TrainConfig:
+    """Read and validate a YAML config file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    return parse_config(data, str(path))
+
+
+def dump_config(config: TrainConfig) -> str:
+    """The config as YAML text (every field, so the file documents the run)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

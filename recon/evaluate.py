@@ -1,0 +1,125 @@
+"""Evaluation: render test views, score PSNR/SSIM (whole valid image and slot regions), write side-by-sides."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from parksim.data import DatasetReader
+from parksim.gaussians import GaussianScene
+from parksim.imageio import write_image
+from parksim.render import render
+
+from .masks import scene_mask
+from .metrics import psnr, slot_region_mask, slot_segments, ssim
+
+__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize"]
+
+Response = Callable[[Tensor, str], Tensor]
+
+
+def render_view(scene: GaussianScene, reader: DatasetReader, frame: int, camera: str, response: Response | None,
+                backend: str) -> Tensor:
+    """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped)."""
+    image = render(scene, reader.rig, reader.pose(frame), cameras=[camera], backend=backend).images[camera]
+    return response(image, camera) if response is not None else image
+
+
+@dataclass
+class EvalReport:
+    """Per-view scores and their means; slot scores only where the view has slot pixels."""
+
+    views: list[dict[str, Any]] = field(default_factory=list)
+
+    def mean(self, key: str, **where: Any) -> float | None:
+        """Mean of ``key`` over views matching ``where`` that have it (None when none do)."""
+        vals = [v[key] for v in self.views if v.get(key) is not None and all(v[k] == x for k, x in where.items())]
+        return statistics.fmean(vals) if vals else None
+
+
+def summarize(report: EvalReport, cameras: list[str], frames: list[int]) -> dict[str, Any]:
+    """Overall, per-camera and per-frame means of every score."""
+    keys = ("psnr", "ssim", "slot_psnr", "slot_ssim")
+    return {"overall": {k: report.mean(k) for k in keys},
+            "per_camera": {c: {k: report.mean(k, camera=c) for k in keys} for c in cameras},
+            "per_frame": {str(f): {k: report.mean(k, frame=f) for k in keys} for f in frames}}
+
+
+@torch.no_grad()
+def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tuple[int, str]],
+                   response: Response | None, backend: str = "auto", slots: bool = True,
+                   side_by_side: Path | None = None) -> EvalReport:
+    """Score each ``(frame, camera)`` view against the dataset over the camera's scene mask."""
+    rig = reader.rig
+    masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in {c for _, c in views}}
+    segments = slot_segments(reader.map) if slots and reader.layout.map.is_file() else torch.zeros(0, 2, 2)
+    report = EvalReport()
+    for frame, camera in views:
+        gt = reader.image(camera, frame)
+        pred = render_view(scene, reader, frame, camera, response, backend).clamp(0.0, 1.0)
+        mask = masks[camera]
+        row: dict[str, Any] = {"frame": frame, "camera": camera, "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask)}
+        if len(segments):
+            depth_path = reader.layout.depth(camera, frame)
+            depth = reader.depth(camera, frame) if depth_path.is_file() else None
+            slot = slot_region_mask(rig.cameras[camera], reader.pose(frame), segments, depth) & mask
+            if slot.any():
+                row["slot_psnr"], row["slot_ssim"] = psnr(pred, gt, slot), ssim(pred, gt, slot)
+            row["slot_pixels"] = int(slot.sum())
+        if side_by_side is not None:
+            shown = torch.where(mask[..., None], pred, pred * 0.3)
+            write_image(side_by_side / f"{frame:06d}_{camera}.png", torch.cat([shown, gt], dim=1))
+        report.views.append({k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in row.items()})
+    return report
+
+
+def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
+                    lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None) -> dict[str, Any]:
+    """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs."""
+    from parksim.bundle import load, write_json
+
+    from .response import CameraResponse
+
+    bundle, reader = load(scene_dir), DatasetReader(data_dir)
+    response = CameraResponse(reader.rig, 0.0)
+    response.load_dict(bundle.meta.get("camera_response", {}))
+    frames = reader.split["test"]
+    if not frames:
+        raise ValueError(f"{data_dir}: no test frames in split.json")
+    views = [(f, c) for f in frames for c in reader.rig.names]
+    (out_dir / "renders").mkdir(parents=True, exist_ok=True)
+    report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=out_dir / "renders")
+    if lpips is not None:
+        masks = {c: scene_mask(reader.rig.cameras[c], reader.rig.bev) for c in reader.rig.names}
+        for row in report.views:
+            pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend).clamp(0, 1)
+            row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]), masks[row["camera"]])
+    summary = summarize(report, reader.rig.names, frames)
+    summary["overall"]["lpips"] = report.mean("lpips")
+    result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,
+              "lpips": "computed" if lpips is not None else "not computed (no LPIPS weights given)",
+              **summary, "views": report.views}
+    write_json(out_dir / "eval.json", result)
+    (out_dir / "eval.md").write_text(_table(result, reader.rig.names))
+    return result
+
+
+def _cell(v: float | None, digits: int) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def _table(result: dict[str, Any], cameras: list[str]) -> str:
+    """Markdown: overall and per-camera scores; LPIPS marked when it was not computed."""
+    o = result["overall"]
+    lpips = _cell(o["lpips"], 3) if o["lpips"] is not None else "not computed"
+    lines = ["| view | PSNR | SSIM | slot PSNR | slot SSIM |", "| --- | --- | --- | --- | --- |"]
+    for name, s in [("all test views", o)] + [(c, result["per_camera"][c]) for c in cameras]:
+        lines.append(f"| {name} | {_cell(s['psnr'], 2)} | {_cell(s['ssim'], 3)} | {_cell(s['slot_psnr'], 2)} | "
+                     f"{_cell(s['slot_ssim'], 3)} |")
+    return "\n".join(lines) + f"\n\nLPIPS: {lpips}\n"

@@ -1,0 +1,90 @@
+"""Image quality metrics over masked pixels (PSNR, SSIM) and slot-region masks from the world slot map."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from parksim.rig import RigCamera
+
+from .losses import masked_mean, ssim_map
+from .masks import pixel_grid
+
+__all__ = ["psnr", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
+
+SLOT_RADIUS = 0.5
+"""Slot regions: pixels seeing the floor within this distance (m) of a painted slot line."""
+_CHUNK = 4096
+_GROUND_TOLERANCE = 0.1  # m: how far behind the ground hit the true surface may be and still count as floor
+
+
+def _batch(image: Tensor) -> Tensor:
+    """HxWx3 -> 1x3xHxW."""
+    return image.permute(2, 0, 1)[None]
+
+
+def psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
+    """PSNR (dB, peak 1) of HxWx3 images over the HxW boolean ``mask``; inf for a perfect match."""
+    m = mask[None, None].to(pred.dtype)
+    mse = float(masked_mean((_batch(pred) - _batch(gt)) ** 2, m))
+    return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def ssim(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
+    """Mean SSIM (11x11 Gaussian window) of HxWx3 images over the HxW boolean ``mask``."""
+    return float(masked_mean(ssim_map(_batch(pred), _batch(gt)), mask[None, None].to(pred.dtype)))
+
+
+def slot_segments(world_map: dict[str, Any]) -> Tensor:
+    """Painted slot lines as world segments ``[S, 2, 2]`` (xy): the four edges of every slot's outline."""
+    segs = []
+    for slot in world_map.get("slots", []):
+        c = slot["corners"]
+        segs += [(c[i], c[(i + 1) % len(c)]) for i in range(len(c))]
+    return torch.tensor(segs, dtype=torch.float64).reshape(-1, 2, 2)
+
+
+def _distance_to_segments(points: Tensor, segments: Tensor) -> Tensor:
+    """Distance of each 2D point ``[P, 2]`` to the nearest segment of ``[S, 2, 2]``."""
+    a, b = segments[:, 0], segments[:, 1]
+    ab = b - a
+    out = torch.empty(len(points), dtype=points.dtype)
+    for start in range(0, len(points), _CHUNK):
+        p = points[start:start + _CHUNK, None]
+        t = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
+        out[start:start + _CHUNK] = (p - (a + t[..., None] * ab)).norm(dim=-1).amin(dim=1)
+    return out
+
+
+def slot_region_mask(camera: RigCamera, T_world_vehicle: Tensor, segments: Tensor, depth: Tensor | None = None,
+                     radius: float = SLOT_RADIUS) -> Tensor:
+    """Bool ``[H, W]``: the pixel's ray meets the floor (z = 0) within ``radius`` of a slot line.
+
+    With ``depth`` (distance along the ray, 0 = unknown) the floor point must also be what the pixel
+    sees, so slot lines hidden behind cars or pillars are not counted.
+    """
+    model = camera.model
+    if len(segments) == 0:
+        return torch.zeros(model.height, model.width, dtype=torch.bool)
+    T = T_world_vehicle.to(torch.float64) @ camera.T_vehicle_camera
+    rays = model.unproject(pixel_grid(model.width, model.height)) @ T[:3, :3].T
+    origin = T[:3, 3]
+    down = rays[..., 2] < -1e-6
+    t = torch.where(down, -origin[2] / torch.where(down, rays[..., 2], -1.0), 0.0)
+    hit = origin[:2] + t[..., None] * rays[..., :2]
+    mask = down & model.pixel_valid(pixel_grid(model.width, model.height))
+    points = hit[mask]
+    if len(points):
+        lo, hi = points.amin(0) - radius, points.amax(0) + radius
+        ends = segments.reshape(-1, 2, 2)
+        reach = ((ends.amax(1) >= lo) & (ends.amin(1) <= hi)).all(dim=1)
+        near = torch.zeros(len(points), dtype=torch.bool)
+        if reach.any():
+            near = _distance_to_segments(points, segments[reach]) <= radius
+        mask[mask.clone()] = near
+    if depth is not None:
+        mask &= (depth <= 0) | (depth.to(torch.float64) >= t - _GROUND_TOLERANCE)
+    return mask

@@ -1,0 +1,67 @@
+"""``reconstruct``: validate inputs, train (fresh or resumed), then write the scene bundle and plots."""
+
+from __future__ import annotations
+
+import datetime
+from pathlib import Path
+from typing import Callable
+
+from parksim.bundle import Bundle, atomic_write, save
+from parksim.data import DatasetReader
+
+from .checkpoint import checkpoint_path
+from .config import TrainConfig, dump_config, load_config
+from .plots import plot_metrics
+from .trainer import METRICS_FILE, Trainer
+
+__all__ = ["reconstruct", "CONFIG_FILE"]
+
+CONFIG_FILE = "config.yaml"
+
+
+def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool) -> TrainConfig:
+    """The run's config; a resumed run must keep the one it started with."""
+    if not resume:
+        if (out_dir / CONFIG_FILE).exists() or checkpoint_path(out_dir).exists():
+            raise ValueError(f"{out_dir} already holds a run; pass --resume to continue it or choose another folder")
+        return load_config(config_path) if config_path is not None else TrainConfig()
+    stored = load_config(out_dir / CONFIG_FILE)
+    if config_path is not None and load_config(config_path) != stored:
+        raise ValueError(f"--config {config_path} differs from the config the run in {out_dir} started with")
+    return stored
+
+
+def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Path | None = None,
+                resume: bool = False, stop_after: int | None = None, log: Callable[[str], None] = print) -> Path:
+    """Train a scene from ``data_dir`` into ``out_dir``; returns ``out_dir`` once the bundle is written.
+
+    Every input (dataset, config, checkpoint) is checked before anything is written. ``stop_after`` ends
+    the run early (as a kill would, after a checkpoint) and writes no bundle.
+    """
+    out_dir = Path(out_dir)
+    reader = DatasetReader(data_dir)
+    config = _resolve_config(out_dir, config_path, resume)
+    if resume:
+        trainer = Trainer.from_checkpoint(reader, config, out_dir, log)
+        trainer.truncate_metrics()
+    else:
+        trainer = Trainer(reader, config, out_dir, log)
+        trainer.initialise()
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / METRICS_FILE).unlink(missing_ok=True)
+        atomic_write(out_dir / CONFIG_FILE, lambda p: p.write_text(dump_config(config)))
+    trainer.train(stop_after=stop_after)
+    if trainer.step < config.photometric.iterations:
+        return out_dir
+    assert trainer.params is not None
+    meta = {"dataset": str(Path(data_dir).resolve()), "phase": "photometric", "iterations": trainer.step,
+            "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
+            "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    world_map = reader.map if reader.layout.map.is_file() else None
+    save(out_dir, Bundle(trainer.params.snapshot(), reader.rig, world_map, meta))
+    if (out_dir / METRICS_FILE).is_file():
+        plot_metrics(out_dir / METRICS_FILE, out_dir / "metrics.png")
+    log(f"wrote {out_dir}: {len(trainer.params)} Gaussians after {trainer.step} iterations "
+        f"({trainer.elapsed:.0f} s of training)")
+    return out_dir

@@ -1,0 +1,217 @@
+"""The photometric phase of ParkGaussian: fit Gaussians to the surround-view fisheye images.
+
+Each iteration renders ``batch_size`` random (train frame, camera) views with ``parksim.render``, applies
+the camera's learned response, and minimises (1 - lambda) L1 + lambda D-SSIM over the camera's scene
+mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the densification strategy
+(MCMC by default) runs after each step. The slot-aware phase continues from this trainer's checkpoint
+with its own losses; its iterations are part of the learning-rate schedule (``TrainConfig.schedule_iterations``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from parksim.data import DatasetReader
+from parksim.render import render
+
+from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .config import TrainConfig, parse_config
+from .evaluate import evaluate_views
+from .init import initial_scene
+from .losses import photometric_loss
+from .masks import scene_mask
+from .metrics import psnr
+from .params import GaussianParams
+from .response import CameraResponse
+from .schedule import exp_decay, sh_degree_at
+from .strategy_adc import ADCStrategy, ViewInfo
+from .strategy_mcmc import MCMCStrategy
+
+__all__ = ["Trainer", "scene_extent", "METRICS_FILE"]
+
+METRICS_FILE = "metrics.jsonl"
+
+
+def scene_extent(reader: DatasetReader) -> float:
+    """3DGS's scene scale: 1.1 x the largest camera-centre distance from their mean (at least 1 m)."""
+    centres = torch.stack([(pose @ cam.T_vehicle_camera)[:3, 3] for pose in reader.poses
+                           for cam in reader.rig.cameras.values()])
+    return max(1.0, 1.1 * float((centres - centres.mean(0)).norm(dim=1).max()))
+
+
+@dataclass
+class _Batch:
+    """Rendered views of one iteration with their targets and masks."""
+
+    preds: list[Tensor]
+    gts: list[Tensor]
+    masks: list[Tensor]
+    infos: list[ViewInfo]
+
+
+class Trainer:
+    """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them."""
+
+    def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
+                 log: Callable[[str], None] = print) -> None:
+        self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
+        self.rig = reader.rig
+        self.generator = torch.Generator().manual_seed(config.run.seed)
+        self.views = [(f, c) for f in reader.split["train"] for c in self.rig.names]
+        if not self.views:
+            raise ValueError(f"{reader.layout.root}: no training frames")
+        self.test_views = [(f, c) for f in reader.split["test"] for c in self.rig.names][::config.run.eval_stride]
+        self.masks = {c: scene_mask(self.rig.cameras[c], self.rig.bev).to(torch.float32)[None, None]
+                      for c in self.rig.names}
+        self.extent = scene_extent(reader)
+        self.response = CameraResponse(self.rig, config.lr.response)
+        d = config.densify
+        self.strategy = MCMCStrategy(d.mcmc) if d.strategy == "mcmc" else ADCStrategy(d.adc, self.extent)
+        self.params: GaussianParams | None = None
+        self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
+        self._images: dict[tuple[int, str], Tensor] = {}
+
+    # --- set-up ----------------------------------------------------------------------------
+    def _lrs(self) -> dict[str, float]:
+        lr = self.cfg.lr
+        return {"means": lr.means * self.extent, "quats": lr.quats, "log_scales": lr.scales,
+                "opacity_logits": lr.opacity, "sh0": lr.sh0, "shN": lr.shN}
+
+    def initialise(self) -> None:
+        """Fresh parameters from the configured initial point cloud."""
+        scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree, self.generator)
+        self.params = GaussianParams.from_scene(scene, self.cfg.photometric.sh_degree, self._lrs())
+        self.log(f"initialised {len(scene)} Gaussians from {self.init_note}; scene extent {self.extent:.1f} m")
+
+    def resume(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint's parameters, optimizer moments, strategy, response, RNG and position."""
+        saved = parse_config(state["config"], "checkpoint config")
+        if saved != self.cfg:
+            raise ValueError("the checkpoint was written with a different config; resume with the run's config.yaml")
+        self.params = GaussianParams(state["params"], self._lrs())
+        self.params.optimizer.load_state_dict(state["optimizer"])
+        self.response.load_state_dict(state["response"])
+        self.strategy.load_state_dict(state["strategy"])
+        self.generator.set_state(state["rng"])
+        self.step, self.elapsed, self.init_note = int(state["iteration"]), float(state["elapsed"]), state["init"]
+        self.cpu = float(state["cpu"])
+
+    def state(self) -> dict[str, Any]:
+        """Everything ``resume`` needs."""
+        assert self.params is not None
+        return {"iteration": self.step, "elapsed": self.elapsed, "cpu": self.cpu, "init": self.init_note,
+                "params": {k: v.detach().clone() for k, v in self.params.tensors.items()},
+                "optimizer": self.params.optimizer.state_dict(), "response": self.response.state_dict(),
+                "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(),
+                "config": self.cfg.model_dump(mode="json")}
+
+    # --- one iteration -----------------------------------------------------------------------
+    def _image(self, frame: int, camera: str) -> Tensor:
+        key = (frame, camera)
+        if key not in self._images:
+            self._images[key] = self.reader.image(camera, frame)
+        return self._images[key]
+
+    def _render_batch(self, sh_degree: int) -> _Batch:
+        assert self.params is not None
+        picks = torch.randint(len(self.views), (self.cfg.run.batch_size,), generator=self.generator).tolist()
+        scene = self.params.scene(sh_degree)
+        batch = _Batch([], [], [], [])
+        for i in picks:
+            frame, camera = self.views[i]
+            pose = self.reader.pose(frame)
+            image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend).images[camera]
+            batch.preds.append(self.response(image, camera))
+            batch.gts.append(self._image(frame, camera))
+            batch.masks.append(self.masks[camera])
+            cam = self.rig.cameras[camera]
+            batch.infos.append(ViewInfo((pose @ cam.T_vehicle_camera)[:3, 3], float(cam.model.fx), cam.model.width))
+        return batch
+
+    def _set_lr(self) -> float:
+        lr = self.cfg.lr
+        means_lr = exp_decay(self.step, self.cfg.schedule_iterations, lr.means * self.extent, lr.means_final_factor)
+        assert self.params is not None
+        self.params.set_lr("means", means_lr)
+        return means_lr
+
+    def iteration(self) -> dict[str, Any]:
+        """One optimisation step; returns the step's log record."""
+        assert self.params is not None
+        ph = self.cfg.photometric
+        means_lr = self._set_lr()
+        sh_degree = sh_degree_at(self.step, ph.sh_degree_interval, ph.sh_degree)
+        batch = self._render_batch(sh_degree)
+        rgb = sum(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
+                  for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
+        loss = rgb + self.strategy.regularization(self.params)
+        loss.backward()
+        self.strategy.after_backward(self.params, batch.infos)
+        self.params.optimizer.step()
+        self.params.optimizer.zero_grad(set_to_none=True)
+        self.response.step()
+        self.step += 1
+        refine = self.strategy.after_step(self.params, self.step, means_lr, self.generator)
+        with torch.no_grad():
+            train_psnr = psnr(batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0)
+        return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()), "psnr": train_psnr,
+                "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr, **refine}
+
+    # --- the run ------------------------------------------------------------------------------
+    def evaluate(self) -> dict[str, float | None]:
+        """Mean test-view PSNR/SSIM of the current parameters (no slot regions: cheap enough to run often)."""
+        assert self.params is not None
+        report = evaluate_views(self.params.snapshot(), self.reader, self.test_views, self.response,
+                                self.cfg.run.backend, slots=False)
+        return {"test_psnr": report.mean("psnr"), "test_ssim": report.mean("ssim")}
+
+    def _write_metrics(self, record: dict[str, Any]) -> None:
+        with open(self.out / METRICS_FILE, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def truncate_metrics(self) -> None:
+        """Drop metric lines past the current step (written by a run killed after its last checkpoint)."""
+        path = self.out / METRICS_FILE
+        if path.is_file():
+            lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["iteration"] <= self.step]
+            path.write_text("".join(ln + "\n" for ln in lines))
+
+    def train(self, stop_after: int | None = None) -> None:
+        """Run to ``photometric.iterations`` (or stop once ``stop_after`` iterations are done)."""
+        run, total = self.cfg.run, self.cfg.photometric.iterations
+        end = total if stop_after is None else min(total, stop_after)
+        bar = tqdm(total=total, initial=self.step, desc="reconstruct", unit="it", disable=not run.progress,
+                   dynamic_ncols=True)
+        with bar:
+            while self.step < end:
+                start, start_cpu = time.perf_counter(), time.process_time()
+                record = self.iteration()
+                self.elapsed += time.perf_counter() - start
+                self.cpu += time.process_time() - start_cpu
+                clock = {"elapsed_s": self.elapsed, "cpu_s": self.cpu}
+                if self.step % run.log_every == 0 or self.step == total:
+                    self._write_metrics({**record, **clock})
+                if run.eval_every and (self.step % run.eval_every == 0 or self.step == total) and self.test_views:
+                    self._write_metrics({"iteration": self.step, **clock, **self.evaluate()})
+                if self.step % run.checkpoint_every == 0 or self.step == total:
+                    save_checkpoint(checkpoint_path(self.out), self.state())
+                bar.update(1)
+                bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
+
+    @classmethod
+    def from_checkpoint(cls, reader: DatasetReader, config: TrainConfig, out_dir: Path,
+                        log: Callable[[str], None] = print) -> "Trainer":
+        """A trainer continuing the run in ``out_dir`` from its last checkpoint."""
+        state = load_checkpoint(checkpoint_path(out_dir))
+        trainer = cls(reader, config, out_dir, log)
+        trainer.resume(state)
+        trainer.log(f"resumed at iteration {trainer.step} with {len(trainer.params)} Gaussians")
+        return trainer

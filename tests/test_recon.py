@@ -1,0 +1,215 @@
+"""Reconstruction: training improves a tiny scene, kill-and-resume is exact, bad inputs fail cleanly."""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from parksim.bundle import load
+from parksim.cli import main as cli_main
+from parksim.data import DatasetReader
+from recon.checkpoint import CheckpointError, checkpoint_path
+from recon.config import ConfigError, TrainConfig, load_config
+from recon.evaluate import evaluate_views
+from recon.init import initial_scene
+from recon.losses import ssim_map
+from recon.plots import read_metrics
+from recon.reconstruct import reconstruct
+from recon.response import CameraResponse
+from recon.strategy_mcmc import relocation_correction
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny.yaml"
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("recon") / "tiny"
+    assert cli_main(["synth", "tiny", "-o", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def full_run(tiny_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An uninterrupted tiny run."""
+    return reconstruct(tiny_data, tmp_path_factory.mktemp("runs") / "full", TINY, log=lambda s: None)
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_loss_down_and_test_psnr_up(full_run: Path, tiny_data: Path) -> None:
+    records = [r for r in read_metrics(full_run / "metrics.jsonl") if "loss" in r]
+    assert records[-1]["iteration"] == load_config(TINY).photometric.iterations
+    assert sum(r["loss"] for r in records[-2:]) < sum(r["loss"] for r in records[:2])
+    reader = DatasetReader(tiny_data)
+    views = [(f, c) for f in reader.split["test"] for c in reader.rig.names]
+    config = load_config(TINY)
+    start, _ = initial_scene(reader, config.init, 1, torch.Generator().manual_seed(config.run.seed))
+    bundle = load(full_run)
+    response = CameraResponse(reader.rig, 0.0)
+    response.load_dict(bundle.meta["camera_response"])
+    before = evaluate_views(start, reader, views, None, slots=False).mean("psnr")
+    after = evaluate_views(bundle.scene, reader, views, response).mean("psnr")
+    assert after > before + 0.5
+
+
+def test_kill_and_resume_matches_uninterrupted(full_run: Path, tiny_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "resumed"
+    reconstruct(tiny_data, out, TINY, stop_after=10, log=lambda s: None)
+    assert not (out / "gaussians.ply").exists() and checkpoint_path(out).is_file()
+    with open(out / "metrics.jsonl", "a") as f:  # a line written after the checkpoint by the "killed" run
+        f.write('{"iteration": 15, "loss": 9.0}\n')
+    reconstruct(tiny_data, out, None, resume=True, log=lambda s: None)
+    a, b = load(full_run).scene, load(out).scene
+    assert len(a) == len(b)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=1e-4, atol=1e-5)
+    assert [r["iteration"] for r in read_metrics(out / "metrics.jsonl")] == \
+        [r["iteration"] for r in read_metrics(full_run / "metrics.jsonl")]
+
+
+def test_corrupt_checkpoint_is_a_clear_error_and_nothing_changes(full_run: Path, tiny_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "broken"
+    shutil.copytree(full_run, out)
+    ckpt = checkpoint_path(out)
+    ckpt.write_bytes(ckpt.read_bytes()[:1000])
+    before = _files(out)
+    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+        reconstruct(tiny_data, out, None, resume=True, log=lambda s: None)
+    assert _files(out) == before
+
+
+def test_config_typo_names_the_key_and_writes_nothing(tiny_data: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("photometric:\n  iteratons: 5\n")
+    out = tmp_path / "never"
+    with pytest.raises(ConfigError, match=r"photometric\.iteratons"):
+        reconstruct(tiny_data, out, bad, log=lambda s: None)
+    assert not out.exists()
+
+
+def test_existing_run_is_not_overwritten(full_run: Path, tiny_data: Path) -> None:
+    before = _files(full_run)
+    with pytest.raises(ValueError, match="--resume"):
+        reconstruct(tiny_data, full_run, TINY, log=lambda s: None)
+    assert _files(full_run) == before
+
+
+def test_paper_defaults_are_the_shipped_config() -> None:
+    config = load_config(ROOT / "configs" / "parkgaussian.yaml")
+    assert config == TrainConfig()
+    assert (config.photometric.iterations, config.slot_aware.iterations) == (20_000, 10_000)
+    assert config.photometric.ssim_lambda == 0.2 and config.lr.means_final_factor == 0.01
+    load_config(ROOT / "configs" / "cpu_fast.yaml")
+
+
+def test_relocation_keeps_opacity_and_is_identity_for_one_copy() -> None:
+    o = torch.tensor([0.3, 0.7, 0.95])
+    s = torch.rand(3, 3) + 0.1
+    new_o, new_s = relocation_correction(o, s, torch.ones(3))
+    torch.testing.assert_close(new_o, o)
+    torch.testing.assert_close(new_s, s)
+    copies = torch.tensor([2.0, 3.0, 5.0])
+    new_o, new_s = relocation_correction(o, s, copies)
+    torch.testing.assert_close(1 - (1 - new_o) ** copies, o)
+    assert bool((new_s < s).all())
+
+
+def test_ssim_matches_kornia() -> None:
+    import kornia
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(1, 3, 30, 40, generator=g), torch.rand(1, 3, 30, 40, generator=g)
+    torch.testing.assert_close(ssim_map(a, b), kornia.metrics.ssim(a, b, 11))
+    assert math.isclose(float(ssim_map(a, a).mean()), 1.0, rel_tol=1e-5)
+
+
+def test_eval_report_has_slot_scores_and_no_invented_lpips(full_run: Path, tiny_data: Path, tmp_path: Path) -> None:
+    from recon.evaluate import evaluate_bundle
+
+    result = evaluate_bundle(full_run, tiny_data, tmp_path / "eval")
+    assert result["overall"]["psnr"] > 10 and 0 < result["overall"]["ssim"] <= 1
+    assert result["overall"]["lpips"] is None and result["lpips"].startswith("not computed")
+    assert "LPIPS: not computed" in (tmp_path / "eval" / "eval.md").read_text()
+    assert any(v.get("slot_psnr") is not None for v in result["views"])
+    assert len(list((tmp_path / "eval" / "renders").glob("*.png"))) == len(result["views"])
+
+
+def test_lpips_from_weight_files(tmp_path: Path) -> None:
+    from recon.lpips import LPIPS, LPIPSError, _NETS, _features
+
+    g = torch.Generator().manual_seed(0)
+    backbone = {f"features.{k}": torch.randn(v.shape, generator=g) * 0.1
+                for k, v in _features(_NETS["alex"][0]).state_dict().items()}
+    torch.save(backbone, tmp_path / "alexnet.pth")
+    torch.save({f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) for i, c in enumerate([64, 192, 384, 256, 256])},
+               tmp_path / "alex.pth")
+    lpips = LPIPS("alex", tmp_path / "alexnet.pth", tmp_path / "alex.pth")
+    a, b = torch.rand(64, 64, 3, generator=g), torch.rand(64, 64, 3, generator=g)
+    mask = torch.ones(64, 64, dtype=torch.bool)
+    assert lpips(a, a, mask) == 0.0 and lpips(a, b, mask) > 0
+    with pytest.raises(LPIPSError, match="do not fit"):
+        LPIPS("vgg", tmp_path / "alexnet.pth", tmp_path / "alex.pth")
+
+
+def test_similarity_alignment_recovers_a_known_transform() -> None:
+    from parksim.geometry import rotation_from_quaternion
+    from recon.colmap import align_similarity
+
+    g = torch.Generator().manual_seed(1)
+    src = torch.randn(20, 3, generator=g, dtype=torch.float64).numpy()
+    R = rotation_from_quaternion(torch.randn(4, generator=g, dtype=torch.float64)).numpy()
+    dst = 2.5 * src @ R.T + [1.0, -2.0, 0.5]
+    s, R_est, t = align_similarity(src, dst)
+    assert abs(s - 2.5) < 1e-9 and abs(R_est - R).max() < 1e-9 and abs(t - [1.0, -2.0, 0.5]).max() < 1e-9
+
+
+def test_colmap_errors_are_clear(tmp_path: Path) -> None:
+    pytest.importorskip("pycolmap")
+    from recon.colmap import ColmapError, read_colmap_points
+
+    with pytest.raises(ColmapError, match="not found"):
+        read_colmap_points(tmp_path / "none")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ColmapError, match="not a readable COLMAP model"):
+        read_colmap_points(tmp_path / "empty")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("PARKSIM_COLMAP_DATA"),
+                    reason="set PARKSIM_COLMAP_DATA to a 640x480 synthetic dataset (e.g. data/scene1): SfM takes ~1 min")
+def test_sfm_recovers_poses_up_to_similarity(tmp_path: Path) -> None:
+    pytest.importorskip("pycolmap")
+    from recon.colmap import pose_errors, run_sfm, vehicle_poses
+
+    data = Path(os.environ["PARKSIM_COLMAP_DATA"])
+    reader = DatasetReader(data)
+    model = run_sfm(data, tmp_path / "sfm", ["front"], frame_stride=2)
+    errors = pose_errors(vehicle_poses(model, reader), reader)
+    assert errors["frames"] >= 0.8 * len(reader.frames[::2])
+    assert errors["position_rmse_m"] < 0.05 * errors["trajectory_length_m"] and errors["rotation_mean_deg"] < 2.0
+
+
+def test_adc_strategy_densifies_and_keeps_optimizer_rows_aligned(tiny_data: Path, tmp_path: Path) -> None:
+    from recon.trainer import Trainer
+
+    base = load_config(TINY).model_dump()
+    base["densify"]["strategy"] = "adc"
+    base["densify"]["adc"].update(grad_threshold=1e-9, refine_start=2, refine_every=3, refine_stop=20, cap_max=1200)
+    config = TrainConfig.model_validate(base)
+    trainer = Trainer(DatasetReader(tiny_data), config, tmp_path, log=lambda s: None)
+    trainer.initialise()
+    n0 = len(trainer.params)
+    stats = [trainer.iteration() for _ in range(6)]
+    assert any(s.get("cloned", 0) + s.get("split", 0) > 0 for s in stats)
+    assert len(trainer.params) != n0 and len(trainer.params) <= 1200
+    for name, tensor in trainer.params.tensors.items():
+        state = trainer.params.optimizer.state[tensor]
+        assert state["exp_avg"].shape == tensor.shape, name
