@@ -1,0 +1,92 @@
+"""``parksim detector``: train slot detectors (DMPR-PS-style, GCN-Parking-style) on GT BEVs and evaluate them."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``detector train`` and ``detector eval`` (cheap: no heavy imports)."""
+    p = subparsers.add_parser(
+        "detector", help="train and evaluate parking-slot detectors on ground-truth BEVs",
+        description="Parking-slot detectors for the slot-aware losses and the downstream evaluation: "
+                    "DMPR-PS-style (marking points on a 1/32 grid, slots by pairing rules) and GCN-Parking-style "
+                    "(plus an attentional graph scoring ordered point pairs).")
+    sub = p.add_subparsers(dest="detector_command", metavar="ACTION")
+    sub.required = True
+    d = "(default: %(default)s)"
+
+    t = sub.add_parser("train", help="train a detector on the train frames of dataset folders",
+                       description="Train on the ground-truth BEVs (ipm/) and slot labels (labels/) of the train "
+                                   "frames of ParkSim dataset folders, or on every image of ps2.0-style folders "
+                                   "(NAME.json + NAME.jpg). Rotation, mirror and photometric augmentation.")
+    t.add_argument("arch", choices=["dmpr", "gcn"], help="detector architecture")
+    t.add_argument("data", nargs="+", type=Path, help="dataset or ps2.0 folders")
+    t.add_argument("-o", "--output", type=Path, required=True, help="output folder (model.pt, train.json)")
+    t.add_argument("--width", type=float, default=0.25, help=f"channel width multiplier {d}")
+    t.add_argument("--input-size", type=int, default=256, help=f"network input side in px, multiple of 32 {d}")
+    t.add_argument("--steps", type=int, default=1200, help=f"optimiser steps {d}")
+    t.add_argument("--batch-size", type=int, default=8, help=f"BEVs per step {d}")
+    t.add_argument("--lr", type=float, default=2e-3, help=f"peak learning rate (one-cycle) {d}")
+    t.add_argument("--seed", type=int, default=0, help=f"seed for weights, sampling and augmentation {d}")
+    t.add_argument("--threads", type=int, default=2, help=f"torch CPU threads {d}")
+    t.add_argument("--init", type=Path, help="start from a trained detector's matching weights (GCN from DMPR)")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    e = sub.add_parser("eval", help="precision, recall and AP of a detector on a data folder",
+                       description="DMPR-PS' definitions: a marking point is true when within --distance-px "
+                                   "(at 600 px = 10 m, converted to the BEV's scale) of a labelled point and its "
+                                   "direction within --direction-deg; a slot when both ordered entrance points "
+                                   "match and its angle agrees within --slot-angle-deg.")
+    e.add_argument("model", type=Path, help="trained detector (folder or model.pt)")
+    e.add_argument("data", type=Path, help="dataset or ps2.0 folder")
+    e.add_argument("--split", choices=["test", "train", "all"], default="test",
+                   help=f"frames of a dataset folder (ps2.0 folders: all images) {d}")
+    e.add_argument("--threshold", type=float, default=0.5, help=f"marking-point confidence threshold {d}")
+    e.add_argument("--distance-px", type=float, default=10.0, help=f"point distance at DMPR-PS scale {d}")
+    e.add_argument("--direction-deg", type=float, default=30.0, help=f"point direction tolerance {d}")
+    e.add_argument("--slot-angle-deg", type=float, default=10.0, help=f"slot angle tolerance {d}")
+    e.add_argument("--json", type=Path, help="also write the metrics here")
+    e.add_argument("--threads", type=int, default=2, help=f"torch CPU threads {d}")
+    return p
+
+
+def _train(args: argparse.Namespace) -> int:
+    from recon.detectors.train import TrainOptions, train_detector
+
+    opts = TrainOptions(arch=args.arch, width=args.width, input_size=args.input_size, steps=args.steps,
+                        batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads,
+                        init=str(args.init) if args.init else None)
+    path = train_detector(args.data, args.output, opts, progress=not args.quiet)
+    print(f"wrote {path}")
+    return 0
+
+
+def _eval(args: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from recon.detectors import DecodeOptions, load_detector
+    from recon.detectors.evaluate import MatchOptions, evaluate_folder
+
+    torch.set_num_threads(args.threads)
+    if not 0.0 < args.threshold < 1.0:
+        raise ValueError(f"--threshold must be in (0, 1), got {args.threshold}")
+    model = load_detector(args.model)
+    match = MatchOptions(args.distance_px, args.direction_deg, args.slot_angle_deg)
+    result = evaluate_folder(model, args.data, args.split, DecodeOptions(threshold=args.threshold), match)
+    print(f"{args.data} ({result['split']}, {result['images']} BEVs, {result['ms_per_bev']:.1f} ms/BEV)")
+    for name in ("points", "slots"):
+        m = result[name]
+        print(f"  {name:6s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  AP {m['ap']:.3f}  "
+              f"(TP {m['tp']}, FP {m['fp']}, labelled {m['labelled']})")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    """Dispatch to ``train`` or ``eval``."""
+    return _train(args) if args.detector_command == "train" else _eval(args)

@@ -1,0 +1,130 @@
+"""DMPR-PS decoding: grid cells -> marking points (threshold, boundary margin, NMS), point pairs -> slots."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .backbone import PointMaps
+from .labels_ps2 import slot_angle_deg
+
+__all__ = ["MarkingPoint", "Slot", "Detections", "DecodeOptions", "decode_points", "infer_slots", "select_slots"]
+
+
+@dataclass(frozen=True)
+class MarkingPoint:
+    """A detected marking point in BEV pixels (centres at integers); direction in rad, ``atan2(dv, du)``."""
+
+    x: float
+    y: float
+    direction: float
+    shape: str
+    score: float
+
+
+@dataclass(frozen=True)
+class Slot:
+    """A detected slot: indices of its ordered entrance points (slot on the right of p1 -> p2), score, angle (deg)."""
+
+    p1: int
+    p2: int
+    score: float
+    angle: float
+
+
+@dataclass
+class Detections:
+    """Marking points and slots detected in one BEV."""
+
+    points: list[MarkingPoint] = field(default_factory=list)
+    slots: list[Slot] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class DecodeOptions:
+    """Decoding thresholds; distances in metres so they hold at any BEV scale (DMPR-PS' values at 600 px = 10 m)."""
+
+    threshold: float = 0.5          # marking-point confidence
+    margin: float = 0.01            # drop points this close to the border (fraction of the BEV side)
+    nms: float = 1.0 / 16           # suppress weaker points within this box half-size (fraction of the side)
+    short_entrance_m: tuple[float, float] = (2.0, 4.2)   # perpendicular and slanted slots
+    long_entrance_m: tuple[float, float] = (5.0, 7.5)    # parallel slots
+    through_cos: float = 0.8        # a third point k with cos(i->k, k->j) above this lies on the entrance i-j
+    separator_deg: float = 60.0     # max angle between a point's direction and the entrance's right normal
+    parallel_deg: float = 20.0      # max angle between the two points' directions
+    edge_threshold: float = 0.5     # GCN: edge score for a slot
+
+
+def decode_points(maps: PointMaps, index: int, width: int, height: int, opts: DecodeOptions) -> list[MarkingPoint]:
+    """Marking points of image ``index`` of a batch, in the pixels of a ``width`` x ``height`` BEV."""
+    conf = maps.confidence[index, 0].detach()
+    grid_h, grid_w = conf.shape
+    off, direc, shape = maps.offset[index].detach(), maps.direction[index].detach(), maps.shape_l[index, 0].detach()
+    candidates = []
+    for r, c in (conf > opts.threshold).nonzero().tolist():
+        u = (c + float(off[0, r, c])) / grid_w
+        v = (r + float(off[1, r, c])) / grid_h
+        if not (opts.margin <= u <= 1 - opts.margin and opts.margin <= v <= 1 - opts.margin):
+            continue
+        candidates.append((float(conf[r, c]), u, v, math.atan2(float(direc[1, r, c]), float(direc[0, r, c])),
+                           "L" if float(shape[r, c]) > 0.5 else "T"))
+    candidates.sort(key=lambda t: -t[0])
+    kept: list[tuple] = []
+    for cand in candidates:
+        if all(abs(cand[1] - k[1]) >= opts.nms or abs(cand[2] - k[2]) >= opts.nms for k in kept):
+            kept.append(cand)
+    return [MarkingPoint(u * width - 0.5, v * height - 0.5, d, s, score) for score, u, v, d, s in kept]
+
+
+def _unit(angle: float) -> np.ndarray:
+    return np.array([math.cos(angle), math.sin(angle)])
+
+
+def _pair_ok(points: list[MarkingPoint], i: int, j: int, m_per_px: float, opts: DecodeOptions) -> bool:
+    """DMPR-PS pairing rules for the ordered pair i -> j: entrance length, no point between, separator geometry."""
+    a, b = points[i], points[j]
+    vec = np.array([b.x - a.x, b.y - a.y])
+    length = float(np.linalg.norm(vec))
+    metres = length * m_per_px
+    lo, hi = opts.short_entrance_m
+    lo2, hi2 = opts.long_entrance_m
+    if not (lo <= metres <= hi or lo2 <= metres <= hi2):
+        return False
+    for k, p in enumerate(points):
+        if k in (i, j):
+            continue
+        ak, kb = np.array([p.x - a.x, p.y - a.y]), np.array([b.x - p.x, b.y - p.y])
+        norms = np.linalg.norm(ak) * np.linalg.norm(kb)
+        if norms > 0 and float(ak @ kb) / norms > opts.through_cos:
+            return False
+    right = np.array([-vec[1], vec[0]]) / length  # the slot side as the image is viewed (v down)
+    da, db = _unit(a.direction), _unit(b.direction)
+    cos_sep = math.cos(math.radians(opts.separator_deg))
+    return bool(da @ right >= cos_sep and db @ right >= cos_sep
+                and da @ db >= math.cos(math.radians(opts.parallel_deg)))
+
+
+def select_slots(points: list[MarkingPoint], candidates: list[tuple[float, int, int]]) -> list[Slot]:
+    """Greedy by score: each point opens at most one slot and closes at most one; an L point bounds only one."""
+    used_as = {1: set(), 2: set()}
+    used_l: set[int] = set()
+    slots = []
+    for score, i, j in sorted(candidates, key=lambda t: -t[0]):
+        if i in used_as[1] or j in used_as[2] or i in used_l or j in used_l:
+            continue
+        used_as[1].add(i)
+        used_as[2].add(j)
+        used_l.update(k for k in (i, j) if points[k].shape == "L")
+        a, b = points[i], points[j]
+        slots.append(Slot(i, j, score, slot_angle_deg(a.x, a.y, a.direction, b.x, b.y, b.direction)))
+    return slots
+
+
+def infer_slots(points: list[MarkingPoint], m_per_px: float, opts: DecodeOptions) -> list[Slot]:
+    """DMPR-PS slot inference over all ordered point pairs; a slot's score is its weaker point's confidence."""
+    candidates = [(min(points[i].score, points[j].score), i, j)
+                  for i in range(len(points)) for j in range(len(points))
+                  if i != j and _pair_ok(points, i, j, m_per_px, opts)]
+    return select_slots(points, candidates)

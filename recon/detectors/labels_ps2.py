@@ -1,0 +1,119 @@
+"""Slot labels in one form for both sources: ParkSim label dicts and ps2.0-style JSON files (DMPR-PS' relabel).
+
+A ps2.0 file holds ``{"marks": [[x, y, x_dir, y_dir, shape], ...], "slots": [[p1, p2, type, angle], ...]}``:
+1-based MATLAB pixel coordinates in a 600x600 image covering 10 m x 10 m, ``(x_dir, y_dir)`` a second point
+along the marking point's direction, ``shape`` 0 = T and 1 = L, and 1-based point indices in the slots.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+__all__ = ["SlotLabels", "LabelError", "read_ps2_labels", "slot_angle_deg", "PS2_METRES"]
+
+PS2_METRES = 10.0
+"""Side of a ps2.0 image in metres (600 px = 10 m)."""
+
+
+class LabelError(ValueError):
+    """A label file is malformed or holds impossible values; the message names the file and the entry."""
+
+    def __init__(self, path: str | Path, message: str) -> None:
+        super().__init__(f"{path}: {message}")
+
+
+@dataclass
+class SlotLabels:
+    """Marking points ``[N, 4]`` (x, y in px with centres at integers, direction rad, 1 = L / 0 = T) and slots."""
+
+    marks: np.ndarray        # [N, 4] float64
+    slots: np.ndarray        # [M, 2] int64, ordered entrance points (the slot lies right of p1 -> p2)
+    slot_angles: np.ndarray  # [M] float64, degrees between entrance p1 -> p2 and the separators
+    width: int
+    height: int
+    m_per_px: float
+
+    @classmethod
+    def from_parksim(cls, data: Mapping[str, Any], width: int, height: int, m_per_px: float) -> "SlotLabels":
+        """From a ParkSim label dict (``DatasetReader.labels``), already validated by the reader."""
+        marks = np.array([[m["x"], m["y"], m["direction"], 1.0 if m["shape"] == "L" else 0.0] for m in data["marks"]],
+                         dtype=np.float64).reshape(-1, 4)
+        slots = np.array([[s["p1"], s["p2"]] for s in data["slots"]], dtype=np.int64).reshape(-1, 2)
+        angles = np.array([float(s.get("angle", math.nan)) for s in data["slots"]], dtype=np.float64)
+        labels = cls(marks, slots, angles, width, height, m_per_px)
+        labels.fill_angles()
+        return labels
+
+    def fill_angles(self) -> None:
+        """Replace missing slot angles by the angle between the entrance and p1's direction."""
+        for k in np.flatnonzero(~np.isfinite(self.slot_angles)):
+            a, b = self.marks[self.slots[k, 0]], self.marks[self.slots[k, 1]]
+            self.slot_angles[k] = slot_angle_deg(a[0], a[1], a[2], b[0], b[1], b[2])
+
+
+def slot_angle_deg(xa: float, ya: float, da: float, xb: float, yb: float, db: float) -> float:
+    """Angle (deg, 0..180) between the entrance a -> b and the mean direction of the two separators."""
+    entrance = math.atan2(yb - ya, xb - xa)
+    sep = math.atan2(math.sin(da) + math.sin(db), math.cos(da) + math.cos(db))
+    return abs(math.degrees(math.remainder(sep - entrance, 2 * math.pi)))
+
+
+def _rows(path: Path, data: Any, key: str, width: int) -> np.ndarray:
+    """``data[key]`` as a float array ``[K, width]`` (ps2.0 stores a single row unnested)."""
+    if key not in data:
+        raise LabelError(path, f"missing {key!r}")
+    try:
+        arr = np.asarray(data[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise LabelError(path, f"{key!r} must be a list of number rows") from None
+    if arr.size == 0:
+        return np.zeros((0, width))
+    if arr.ndim == 1:
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] < width:
+        raise LabelError(path, f"each {key!r} row needs at least {width} numbers, got shape {list(arr.shape)}")
+    if not np.isfinite(arr).all():
+        raise LabelError(path, f"{key!r} holds non-finite values")
+    return arr[:, :width]
+
+
+def read_ps2_labels(path: str | Path, width: int = 600, height: int = 600) -> SlotLabels:
+    """Read and check one ps2.0 JSON label file for a ``width`` x ``height`` image of 10 m x 10 m."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise LabelError(path, "file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise LabelError(path, f"not valid JSON: {e}") from None
+    if not isinstance(data, dict):
+        raise LabelError(path, "expected an object with 'marks' and 'slots'")
+    marks = _rows(path, data, "marks", 5)
+    slots = _rows(path, data, "slots", 4)
+    out = np.zeros((len(marks), 4))
+    for i, (x, y, xd, yd, shape) in enumerate(marks):
+        u, v = x - 1.0, y - 1.0
+        if not (-0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5):
+            raise LabelError(path, f"mark {i + 1} at ({x:.1f}, {y:.1f}) lies outside the {width}x{height} image")
+        if xd == x and yd == y:
+            raise LabelError(path, f"mark {i + 1} has no direction (its direction point equals the point)")
+        if shape not in (0.0, 1.0):
+            raise LabelError(path, f"mark {i + 1} has shape {shape:g}; expected 0 (T) or 1 (L)")
+        out[i] = (u, v, math.atan2(yd - y, xd - x), shape)
+    pairs = np.zeros((len(slots), 2), dtype=np.int64)
+    for j, (p1, p2, _kind, angle) in enumerate(slots):
+        for p in (p1, p2):
+            if p != int(p) or not 1 <= p <= len(marks):
+                raise LabelError(path, f"slot {j + 1} refers to mark {p:g}; marks are numbered 1..{len(marks)}")
+        if p1 == p2:
+            raise LabelError(path, f"slot {j + 1} uses mark {int(p1)} twice")
+        if not 0.0 < angle < 180.0:
+            raise LabelError(path, f"slot {j + 1} has angle {angle:g}; expected degrees in (0, 180)")
+        pairs[j] = (int(p1) - 1, int(p2) - 1)
+    return SlotLabels(out, pairs, slots[:, 3].copy(), width, height, PS2_METRES / width)
