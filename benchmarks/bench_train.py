@@ -124,7 +124,10 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "bench_train")
     args = parser.parse_args()
     machine = _machine()
-    results = []
+    previous = args.out / "results.json"
+    # Scenes measured earlier and not re-run now stay in the table (each row records its own load).
+    results = [r for r in (json.loads(previous.read_text()) if previous.is_file() else [])
+               if r["scene"] not in args.scenes]
     for scene in args.scenes:
         data = _ensure_dataset(scene, args.data_root, args.resolution)
         results.append(_run(scene, data, args.config.resolve(), args.out))
