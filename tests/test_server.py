@@ -4,6 +4,7 @@ concurrent requests get their own images, API key, metrics."""
 from __future__ import annotations
 
 import asyncio
+import json
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -164,8 +165,11 @@ _json = st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | _
     optional={"cameras": st.lists(st.sampled_from(["front", "rear", "x"]), max_size=3), "scale": st.floats(),
               "bev": st.booleans(), "scene": _text})))
 def test_fuzz_post_never_500(client, body):
-    assert client.post("/render", json=body if not isinstance(body, dict) or "scale" in body
-                       else {**body, "scale": 0.1}).status_code < 500
+    payload = body if not isinstance(body, dict) or "scale" in body else {**body, "scale": 0.1}
+    # Sent as raw text: NaN/Infinity tokens are not JSON, and the server must turn them down with a 4xx.
+    r = client.post("/render", content=json.dumps(payload, allow_nan=True),
+                    headers={"content-type": "application/json"})
+    assert r.status_code < 500
 
 
 def test_full_queue_answers_503_with_retry_after(bundle_dir):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import weakref
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import torch
@@ -47,6 +47,16 @@ class _RigView:
 
     rig: Rig
     ipm: IPM | None = None
+    lens: dict[str, Tensor] = field(default_factory=dict)
+
+    def lens_mask(self, name: str) -> Tensor:
+        """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing)."""
+        if name not in self.lens:
+            m = self.rig.cameras[name].model
+            v, u = torch.meshgrid(torch.arange(m.height, dtype=torch.float64),
+                                  torch.arange(m.width, dtype=torch.float64), indexing="ij")
+            self.lens[name] = m.pixel_valid(torch.stack([u, v], dim=-1))
+        return self.lens[name]
 
 
 _VIEWS: "OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]]" = OrderedDict()
@@ -103,10 +113,15 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
         keep = _rows(proj.index, rows)
         dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(dtype)
-        colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True), scene.sh_degree)
-        images[name], alphas[name], depth_sum = rasterize(
+        # A Gaussian centred exactly on the camera has no view direction: any unit vector does.
+        colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+                         scene.sh_degree)
+        image, alpha, depth_sum = rasterize(
             _rows(proj.means2d, rows), _rows(proj.conics, rows), colors, opacity.index_select(0, keep),
             _rows(proj.depths, rows), cam.model.width, cam.model.height, backend=backend, bg=background)
+        lens = view.lens_mask(name)
+        images[name] = torch.where(lens.unsqueeze(-1), image, background)
+        alphas[name], depth_sum = alpha * lens, depth_sum * lens
         covered = alphas[name] > _MIN_ALPHA_FOR_DEPTH
         depths[name] = torch.where(covered, depth_sum / torch.where(covered, alphas[name], 1.0), 0.0)
     bev_image = None
