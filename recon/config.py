@@ -12,6 +12,8 @@ from typing import Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from .slot_aware.config import SlotAwareConfig
+
 __all__ = ["TrainConfig", "ConfigError", "load_config", "parse_config", "dump_config"]
 
 
@@ -94,18 +96,6 @@ class PhotometricConfig(_Strict):
     sh_degree_interval: int = Field(1000, gt=0, description="raise the SH degree by one every this many iterations")
 
 
-class SlotAwareConfig(_Strict):
-    """Phase 2 (alignment + slot-aware losses): trained by the slot-aware phase, not by this trainer.
-
-    Its iterations count in the learning-rate schedule so that phase 1 + phase 2 follow the paper's 30k schedule.
-    """
-
-    iterations: int = Field(10_000, ge=0)
-    lambda_align: float = Field(0.001, ge=0)
-    lambda_ipm: float = Field(0.1, ge=0)
-    lambda_cam: float = Field(0.1, ge=0)
-
-
 class RunConfig(_Strict):
     """Run mechanics: seed, batch, renderer, logging and checkpoint cadence."""
 
@@ -126,7 +116,8 @@ class TrainConfig(_Strict):
     init: InitConfig = InitConfig()
     lr: LearningRates = LearningRates()
     photometric: PhotometricConfig = PhotometricConfig()
-    slot_aware: SlotAwareConfig = SlotAwareConfig()
+    slot_aware: SlotAwareConfig = Field(SlotAwareConfig(), description="phase 2; its iterations count in the "
+                                        "learning-rate schedule (phase 1 + phase 2 = the paper's 30k)")
     densify: DensifyConfig = DensifyConfig()
 
     @property

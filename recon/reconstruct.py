@@ -51,10 +51,11 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         (out_dir / METRICS_FILE).unlink(missing_ok=True)
         atomic_write(out_dir / CONFIG_FILE, lambda p: p.write_text(dump_config(config)))
     trainer.train(stop_after=stop_after)
-    if trainer.step < config.photometric.iterations:
+    if trainer.step < trainer.total_iterations:
         return out_dir
     assert trainer.params is not None
-    meta = {"dataset": str(Path(data_dir).resolve()), "phase": "photometric", "iterations": trainer.step,
+    phase = "slot_aware" if trainer.slot_step else "photometric"
+    meta = {"dataset": str(Path(data_dir).resolve()), "phase": phase, "iterations": trainer.step,
             "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}

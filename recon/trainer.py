@@ -3,8 +3,10 @@
 Each iteration renders ``batch_size`` random (train frame, camera) views with ``parksim.render``, applies
 the camera's learned response, and minimises (1 - lambda) L1 + lambda D-SSIM over the camera's scene
 mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the densification strategy
-(MCMC by default) runs after each step. The slot-aware phase continues from this trainer's checkpoint
-with its own losses; its iterations are part of the learning-rate schedule (``TrainConfig.schedule_iterations``).
+(MCMC by default) runs after each step. When ``slot_aware.iterations`` > 0 and a detector is configured
+(``slot_aware.detector``, or one passed in; the ``direct_ipm`` variant needs none), the slot-aware phase follows:
+each iteration renders the four cameras of a random train frame and minimises ``recon.slot_aware``'s
+L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rate schedule (``schedule_iterations``).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from tqdm import tqdm
 
 from parksim.data import DatasetReader
@@ -24,6 +26,7 @@ from parksim.render import render
 
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .config import TrainConfig, parse_config
+from .detectors import load_detector
 from .evaluate import evaluate_views
 from .init import initial_scene
 from .losses import photometric_loss
@@ -32,6 +35,7 @@ from .metrics import psnr
 from .params import GaussianParams
 from .response import CameraResponse
 from .schedule import exp_decay, sh_degree_at
+from .slot_aware import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, spec_of
 from .strategy_adc import ADCStrategy, ViewInfo
 from .strategy_mcmc import MCMCStrategy
 
@@ -61,7 +65,7 @@ class Trainer:
     """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them."""
 
     def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
-                 log: Callable[[str], None] = print) -> None:
+                 log: Callable[[str], None] = print, detector: nn.Module | None = None) -> None:
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
         self.rig = reader.rig
         self.generator = torch.Generator().manual_seed(config.run.seed)
@@ -78,6 +82,25 @@ class Trainer:
         self.params: GaussianParams | None = None
         self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
         self._images: dict[tuple[int, str], Tensor] = {}
+        self.slot_step = self._slot_step(detector)
+
+    def _slot_step(self, detector: nn.Module | None) -> SlotAwareStep | None:
+        """The slot-aware step when phase 2 is on: iterations > 0 and a detector where the variant needs one."""
+        sa = self.cfg.slot_aware
+        if sa.iterations == 0:
+            return None
+        if detector is None and sa.detector is not None:
+            detector = load_detector(sa.detector)
+        if detector is None and spec_of(sa.variant).uses_detector:
+            self.log("slot-aware phase off: slot_aware.detector is not set")
+            return None
+        return SlotAwareStep(self.rig, detector, sa, self.cfg.photometric.ssim_lambda, self.cfg.run.backend,
+                             self.response)
+
+    @property
+    def total_iterations(self) -> int:
+        """Iterations of this run: the photometric phase plus the slot-aware phase when it is on."""
+        return self.cfg.photometric.iterations + (self.cfg.slot_aware.iterations if self.slot_step else 0)
 
     # --- set-up ----------------------------------------------------------------------------
     def _lrs(self) -> dict[str, float]:
@@ -132,9 +155,25 @@ class Trainer:
             batch.preds.append(self.response(image, camera))
             batch.gts.append(self._image(frame, camera))
             batch.masks.append(self.masks[camera])
-            cam = self.rig.cameras[camera]
-            batch.infos.append(ViewInfo((pose @ cam.T_vehicle_camera)[:3, 3], float(cam.model.fx), cam.model.width))
+            batch.infos.append(self._view_info(pose, camera))
         return batch
+
+    def _view_info(self, pose: Tensor, camera: str) -> ViewInfo:
+        cam = self.rig.cameras[camera]
+        return ViewInfo((pose @ cam.T_vehicle_camera)[:3, 3], float(cam.model.fx), cam.model.width)
+
+    def _slot_batch(self, sh_degree: int) -> tuple[_Batch, SlotAwareTerms]:
+        """Slot-aware phase: all cameras of one random train frame, with the step's loss terms."""
+        assert self.params is not None and self.slot_step is not None
+        train = self.reader.split["train"]
+        frame = train[int(torch.randint(len(train), (1,), generator=self.generator))]
+        pose, names = self.reader.pose(frame), self.slot_step.ipm.cameras
+        gt = SlotFrame({c: self._image(frame, c) for c in names}, {c: self.masks[c][0, 0] for c in names},
+                       frame_has_slots(self.reader, frame))
+        terms = self.slot_step(self.params.scene(sh_degree), pose, gt)
+        batch = _Batch(list(terms.images.values()), list(gt.images.values()), [self.masks[c] for c in names],
+                       [self._view_info(pose, c) for c in names])
+        return batch, terms
 
     def _set_lr(self) -> float:
         lr = self.cfg.lr
@@ -149,10 +188,16 @@ class Trainer:
         ph = self.cfg.photometric
         means_lr = self._set_lr()
         sh_degree = sh_degree_at(self.step, ph.sh_degree_interval, ph.sh_degree)
-        batch = self._render_batch(sh_degree)
-        rgb = sum(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
-                  for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
-        loss = rgb + self.strategy.regularization(self.params)
+        slot: dict[str, Any] = {}
+        if self.step < ph.iterations:
+            batch = self._render_batch(sh_degree)
+            rgb = sum(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
+                      for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
+            objective = rgb
+        else:
+            batch, terms = self._slot_batch(sh_degree)
+            rgb, objective, slot = terms.rgb, terms.total, terms.record()
+        loss = objective + self.strategy.regularization(self.params)
         loss.backward()
         self.strategy.after_backward(self.params, batch.infos)
         self.params.optimizer.step()
@@ -163,7 +208,8 @@ class Trainer:
         with torch.no_grad():
             train_psnr = psnr(batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0)
         return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()), "psnr": train_psnr,
-                "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr, **refine}
+                "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr, **refine,
+                **{k: v for k, v in slot.items() if k not in ("loss", "rgb_loss")}}
 
     # --- the run ------------------------------------------------------------------------------
     def evaluate(self) -> dict[str, float | None]:
@@ -185,8 +231,8 @@ class Trainer:
             path.write_text("".join(ln + "\n" for ln in lines))
 
     def train(self, stop_after: int | None = None) -> None:
-        """Run to ``photometric.iterations`` (or stop once ``stop_after`` iterations are done)."""
-        run, total = self.cfg.run, self.cfg.photometric.iterations
+        """Run to ``total_iterations`` (or stop once ``stop_after`` iterations are done)."""
+        run, total = self.cfg.run, self.total_iterations
         end = total if stop_after is None else min(total, stop_after)
         bar = tqdm(total=total, initial=self.step, desc="reconstruct", unit="it", disable=not run.progress,
                    dynamic_ncols=True)
