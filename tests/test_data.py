@@ -141,8 +141,9 @@ def test_atomic_dir_leaves_nothing_on_failure(tmp_path):
         (tmp / "a").write_text("1")
     assert (target / "a").read_text() == "1"
     with pytest.raises(FileExistsError):
-        with atomic_dir(target):
-            pass
+        with atomic_dir(target) as tmp:
+            (tmp / "c").write_text("3")  # never runs: an existing scene is not touched
+    assert sorted(p.name for p in target.iterdir()) == ["a"]
     with atomic_dir(target, overwrite=True) as tmp:
         (tmp / "b").write_text("2")
     assert sorted(p.name for p in target.iterdir()) == ["b"] and len(list(tmp_path.iterdir())) == 1
