@@ -17,9 +17,7 @@ from __future__ import annotations
 import io
 import json
 import math
-import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -30,7 +28,6 @@ __all__ = ["Frame", "RequestError", "LocalSim", "RemoteSim", "encode_npz", "deco
 
 MIN_IMAGE_SIDE = 4
 """Smallest rendered image side (px) a ``scale`` may produce."""
-IPM_CACHE_SIZE = 4
 """BEV (IPM) grids kept per scene, one per recently used scale."""
 
 
@@ -96,15 +93,13 @@ def decode_npz(data: bytes) -> tuple[list[Frame], dict[str, Any]]:
 
 
 class LocalSim:
-    """A loaded bundle that renders frames in-process; caches the scaled rigs and BEV (IPM) grids per scale."""
+    """A loaded bundle that renders frames in-process; shares render()'s cached scaled rigs and IPM grids."""
 
     def __init__(self, bundle: Any, scene_id: str = "scene") -> None:
         from .bundle import Bundle, load
 
         self.bundle: Bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
         self.id = scene_id
-        self._ipms: OrderedDict[float, Any] = OrderedDict()
-        self._lock = threading.Lock()
         self.bounds = self._bounds()
 
     @classmethod
@@ -150,26 +145,11 @@ class LocalSim:
         return {"id": self.id, "gaussians": len(b.scene), "cameras": self.cameras, "rig": b.rig.to_dict(),
                 "bev": b.rig.bev.to_dict(), "bounds": self.bounds, "map": b.map, "meta": b.meta}
 
-    def _ipm(self, scale: float) -> Any:
-        """The IPM of all cameras at ``scale`` (grids and blend weights built once per scale, LRU-cached)."""
-        from .ipm import IPM
-        from .rig import Rig, RigCamera
-
-        with self._lock:
-            if scale not in self._ipms:
-                rig = self.bundle.rig
-                cams = {n: RigCamera(n, c.model.scaled(scale), c.T_vehicle_camera) for n, c in rig.cameras.items()}
-                self._ipms[scale] = IPM(Rig(cams, rig.bev), rig.bev)
-                while len(self._ipms) > IPM_CACHE_SIZE:
-                    self._ipms.popitem(last=False)
-            self._ipms.move_to_end(scale)
-            return self._ipms[scale]
-
     def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
                scale: float = 1.0, depth: bool = False) -> Frame:
         """Render ``cameras`` (all when None; the BEV needs them all, so they are all rendered then) at ``pose``."""
         from .imageio import to_uint8
-        from .render import render
+        from .render import bev_ipm, render
 
         names = self.check(cameras, scale)
         needed = self.cameras if bev else names
@@ -183,7 +163,7 @@ class LocalSim:
         frame.timings["views"] = time.perf_counter() - start
         if bev:
             start = time.perf_counter()
-            frame.bev = to_uint8(self._ipm(scale)(res.images))
+            frame.bev = to_uint8(bev_ipm(self.bundle.rig, scale)(res.images))
             frame.timings["bev"] = time.perf_counter() - start
         return frame
 

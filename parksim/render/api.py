@@ -6,6 +6,7 @@ the survivors only, rasterize. The BEV is the IPM of the rendered views, built o
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ from .projection import UTParams, project_gaussians
 from .rasterize import rasterize
 from .sh import eval_sh
 
-__all__ = ["render", "RenderResult"]
+__all__ = ["render", "RenderResult", "bev_ipm"]
 
 _VIEW_CACHE_SIZE = 8
 _MIN_ALPHA_FOR_DEPTH = 1e-4
@@ -48,6 +49,7 @@ class _RigView:
     rig: Rig
     ipm: IPM | None = None
     lens: dict[str, Tensor] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
 
     def lens_mask(self, name: str) -> Tensor:
         """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing)."""
@@ -62,20 +64,33 @@ class _RigView:
 _VIEWS: "OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]]" = OrderedDict()
 
 
+_VIEWS_LOCK = threading.Lock()
+
+
 def _rig_view(rig: Rig, scale: float, names: tuple[str, ...]) -> _RigView:
     """Cached scaled sub-rig (keyed by rig identity: rigs are treated as immutable once rendered)."""
     key = (id(rig), scale, names)
-    hit = _VIEWS.get(key)
-    if hit is not None and hit[0]() is rig:
-        _VIEWS.move_to_end(key)
-        return hit[1]
-    cams = {n: rig.cameras[n] if scale == 1.0 else
-            RigCamera(n, rig.cameras[n].model.scaled(scale), rig.cameras[n].T_vehicle_camera) for n in names}
-    view = _RigView(Rig(cams, rig.bev))
-    _VIEWS[key] = (weakref.ref(rig), view)
-    while len(_VIEWS) > _VIEW_CACHE_SIZE:
-        _VIEWS.popitem(last=False)
-    return view
+    with _VIEWS_LOCK:
+        hit = _VIEWS.get(key)
+        if hit is not None and hit[0]() is rig:
+            _VIEWS.move_to_end(key)
+            return hit[1]
+        cams = {n: rig.cameras[n] if scale == 1.0 else
+                RigCamera(n, rig.cameras[n].model.scaled(scale), rig.cameras[n].T_vehicle_camera) for n in names}
+        view = _RigView(Rig(cams, rig.bev))
+        _VIEWS[key] = (weakref.ref(rig), view)
+        while len(_VIEWS) > _VIEW_CACHE_SIZE:
+            _VIEWS.popitem(last=False)
+        return view
+
+
+def bev_ipm(rig: Rig, scale: float = 1.0, cameras: Sequence[str] | None = None) -> IPM:
+    """The IPM that ``render(..., bev=True)`` uses for these cameras at ``scale``: built once, then shared."""
+    view = _rig_view(rig, float(scale), tuple(cameras) if cameras is not None else tuple(rig.names))
+    with view.lock:
+        if view.ipm is None:
+            view.ipm = IPM(view.rig, rig.bev)
+    return view.ipm
 
 
 def _rows(t: Tensor, rows: Tensor | None) -> Tensor:
@@ -126,7 +141,5 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         depths[name] = torch.where(covered, depth_sum / torch.where(covered, alphas[name], 1.0), 0.0)
     bev_image = None
     if bev:
-        if view.ipm is None:
-            view.ipm = IPM(view.rig, rig.bev)
-        bev_image = view.ipm(images)
+        bev_image = bev_ipm(rig, scale, names)(images)
     return RenderResult(images, alphas, depths, bev_image)

@@ -19,8 +19,7 @@ from torch import Tensor, nn
 
 from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
-from parksim.ipm import IPM
-from parksim.render import render
+from parksim.render import bev_ipm, render
 from parksim.rig import Rig
 
 from ..detectors import DMPRDetector, GCNDetector
@@ -34,7 +33,6 @@ __all__ = ["SlotFrame", "SlotAwareTerms", "SlotAwareStep", "freeze", "frame_has_
 
 Response = Callable[[Tensor, str], Tensor]
 
-
 @dataclass
 class SlotFrame:
     """Ground truth of one frame: fisheye ``images`` (HxWx3), valid-pixel ``masks`` (HxW) and whether it has slots."""
@@ -42,7 +40,6 @@ class SlotFrame:
     images: dict[str, Tensor]
     masks: dict[str, Tensor]
     has_slots: bool
-
 
 @dataclass
 class SlotAwareTerms:
@@ -62,23 +59,19 @@ class SlotAwareTerms:
                 "align_loss": float(self.align.detach()), "ipm_loss": float(self.ipm.detach()),
                 "cam_loss": float(self.cam.detach()), "slot_skipped": self.skipped}
 
-
 def freeze(detector: nn.Module) -> nn.Module:
     """Eval mode, no parameter gradients: the detector guides, it is never trained here."""
     detector.eval()
     detector.requires_grad_(False)
     return detector
 
-
 def frame_has_slots(reader: DatasetReader, frame: int) -> bool:
     """Whether the frame's labels hold a slot; frames of a dataset without labels count as having slots."""
     return not reader.has_labels or bool(reader.labels(frame)["slots"])
 
-
 def _nchw(bev: Tensor) -> Tensor:
     """HxWx3 BEV -> the detector's ``[1, 3, H, W]``."""
     return bev.permute(2, 0, 1)[None]
-
 
 class SlotAwareStep:
     """The slot-aware losses of one frame for a rig, a frozen detector and a ``SlotAwareConfig``."""
@@ -90,7 +83,7 @@ class SlotAwareStep:
         if self.spec.uses_detector and detector is None:
             raise ValueError(f"slot-aware variant {cfg.variant.value!r} needs a detector (slot_aware.detector)")
         self.detector = freeze(detector) if detector is not None else None
-        self.ipm = IPM(rig, cameras=cameras)
+        self.ipm = bev_ipm(rig, cameras=cameras)  # the same grids render(..., bev=True) uses, built once
 
     def __call__(self, scene: GaussianScene, pose: Tensor | Sequence[float], frame: SlotFrame) -> SlotAwareTerms:
         """Render ``frame`` at ``pose`` and compute its loss terms (differentiable in the scene's tensors)."""
