@@ -14,15 +14,15 @@ metrics.jsonl/png  training metrics (optional)
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from .fileio import atomic_write, write_json
 from .gaussians import GaussianScene, PLYFormatError
 from .rig import BEVSpec, CalibrationError, Rig
 
-__all__ = ["Bundle", "BundleError", "load", "save", "atomic_write", "write_json", "BUNDLE_VERSION"]
+__all__ = ["Bundle", "BundleError", "load", "save", "BUNDLE_VERSION"]
 
 BUNDLE_VERSION = 1
 """Bumped when the bundle layout changes incompatibly."""
@@ -46,23 +46,6 @@ class Bundle:
     @property
     def bev(self) -> BEVSpec:
         return self.rig.bev
-
-
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a temp path next to ``path``, then rename: the file appears whole or not at all."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def write_json(path: str | Path, data: Any) -> None:
-    """Atomically write indented JSON."""
-    atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=1) + "\n"))
 
 
 def save(directory: str | Path, bundle: Bundle) -> Path:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from .fileio import atomic_write
 
 __all__ = ["ImageError", "read_image", "write_image", "to_uint8"]
 
@@ -45,11 +46,12 @@ def write_image(path: str | Path, image: Tensor | np.ndarray) -> None:
     import cv2
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arr = to_uint8(image)
     if arr.ndim == 3:
         arr = np.ascontiguousarray(arr[..., ::-1])
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}{path.suffix}")
-    if not cv2.imwrite(str(tmp), arr):
-        raise ImageError(f"cannot write image: {path}")
-    os.replace(tmp, path)
+
+    def encode(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), arr):
+            raise ImageError(f"cannot write image: {path}")
+
+    atomic_write(path, encode)

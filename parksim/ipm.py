@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .camera import pixel_grid
 from .geometry import invert_transform, transform_points
 from .rig import BEVSpec, Rig
 
@@ -70,9 +71,7 @@ class IPM:
             raise ValueError(f"IPM: unknown cameras {unknown}; the rig has {rig.names}")
         self.dtype = dtype
         s = self.spec
-        v, u = torch.meshgrid(torch.arange(s.height, dtype=torch.float64),
-                              torch.arange(s.width, dtype=torch.float64), indexing="ij")
-        xy = s.pixel_to_ground(torch.stack([u, v], dim=-1))
+        xy = s.pixel_to_ground(pixel_grid(s.width, s.height))
         ground = torch.cat([xy, torch.zeros_like(xy[..., :1])], dim=-1)
 
         self.pixel_coords: dict[str, Tensor] = {}
@@ -140,9 +139,7 @@ class IPM:
         if name not in self._back:
             cam = self.rig.cameras[name]
             m = cam.model
-            v, u = torch.meshgrid(torch.arange(m.height, dtype=torch.float64),
-                                  torch.arange(m.width, dtype=torch.float64), indexing="ij")
-            uv = torch.stack([u, v], dim=-1)
+            uv = pixel_grid(m.width, m.height)
             rays = cam.model.unproject(uv) @ cam.T_vehicle_camera[:3, :3].T
             origin = cam.T_vehicle_camera[:3, 3]
             down = rays[..., 2] < -1e-9

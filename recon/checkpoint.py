@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from parksim.bundle import atomic_write
+from parksim.fileio import atomic_write
 
 __all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "checkpoint_path", "FORMAT"]
 

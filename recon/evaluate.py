@@ -82,7 +82,8 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
                     lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs."""
-    from parksim.bundle import load, write_json
+    from parksim.bundle import load
+    from parksim.fileio import write_json
 
     from .response import CameraResponse
 

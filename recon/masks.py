@@ -5,18 +5,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from parksim.camera import pixel_grid
 from parksim.rig import BEVSpec, RigCamera
 
-__all__ = ["pixel_grid", "scene_mask", "EGO_MIN_PATH"]
+__all__ = ["scene_mask", "EGO_MIN_PATH"]
 
 EGO_MIN_PATH = 0.15
 """A ray that runs this far (m) inside the ego box sees the car (cameras sit on the box's surface)."""
-
-
-def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64) -> Tensor:
-    """Pixel centres ``[H, W, 2]`` as (u, v) = (column, row)."""
-    v, u = torch.meshgrid(torch.arange(height, dtype=dtype), torch.arange(width, dtype=dtype), indexing="ij")
-    return torch.stack([u, v], dim=-1)
 
 
 def _path_inside_box(origin: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> Tensor:

@@ -11,7 +11,7 @@ from torch import Tensor
 from parksim.rig import RigCamera
 
 from .losses import masked_mean, ssim_map
-from .masks import pixel_grid
+from parksim.camera import pixel_grid
 
 __all__ = ["psnr", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
 

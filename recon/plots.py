@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from parksim.bundle import atomic_write
+from parksim.fileio import atomic_write
 
 __all__ = ["read_metrics", "plot_metrics"]
 

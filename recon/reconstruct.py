@@ -6,7 +6,8 @@ import datetime
 from pathlib import Path
 from typing import Callable
 
-from parksim.bundle import Bundle, atomic_write, save
+from parksim.bundle import Bundle, save
+from parksim.fileio import atomic_write
 from parksim.data import DatasetReader
 
 from .checkpoint import checkpoint_path

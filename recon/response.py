@@ -14,7 +14,7 @@ from torch import Tensor
 
 from parksim.rig import Rig
 
-from .masks import pixel_grid
+from parksim.camera import pixel_grid
 
 __all__ = ["CameraResponse"]
 

@@ -4,7 +4,7 @@ Each model has ``project(points[...,3]) -> (uv[...,2], valid[...])`` and
 ``unproject(uv[...,2]) -> rays[...,3]``, differentiable in points and intrinsics.
 """
 
-from .base import CameraModel
+from .base import CameraModel, pixel_grid
 from .models import OpenCVFisheye, Pinhole, RadialPolyFisheye, camera_from_dict
 
-__all__ = ["CameraModel", "OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "camera_from_dict"]
+__all__ = ["CameraModel", "pixel_grid", "OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "camera_from_dict"]

@@ -16,9 +16,17 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-__all__ = ["CameraModel"]
+__all__ = ["CameraModel", "pixel_grid"]
 
 _FOLD_SCAN_STEPS = 4096
+
+
+def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64,
+               device: torch.device | str | None = None) -> Tensor:
+    """Pixel centres ``[H, W, 2]`` as (u, v) = (column, row), centres at integer coordinates."""
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device),
+                          torch.arange(width, dtype=dtype, device=device), indexing="ij")
+    return torch.stack([u, v], dim=-1)
 
 
 def _sinc(theta: Tensor) -> Tensor:

@@ -15,6 +15,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from ..camera import pixel_grid
 from ..geometry import as_pose, invert_transform
 from ..gaussians import GaussianScene
 from ..ipm import IPM
@@ -55,9 +56,7 @@ class _RigView:
         """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing)."""
         if name not in self.lens:
             m = self.rig.cameras[name].model
-            v, u = torch.meshgrid(torch.arange(m.height, dtype=torch.float64),
-                                  torch.arange(m.width, dtype=torch.float64), indexing="ij")
-            self.lens[name] = m.pixel_valid(torch.stack([u, v], dim=-1))
+            self.lens[name] = m.pixel_valid(pixel_grid(m.width, m.height))
         return self.lens[name]
 
 

@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from parksim.camera import pixel_grid
+
 __all__ = ["shape_confidence", "mix", "upsample", "top_edges", "edge_tubes", "edge_weights"]
 
 
@@ -48,9 +50,7 @@ def edge_tubes(points: Tensor, pairs: Tensor, size: tuple[int, int], sigma: floa
     """
     height, width = size
     out = points.new_zeros(height, width)
-    v, u = torch.meshgrid(torch.arange(height, dtype=points.dtype), torch.arange(width, dtype=points.dtype),
-                          indexing="ij")
-    pixels = torch.stack([u, v], dim=-1).reshape(-1, 1, 2)
+    pixels = pixel_grid(width, height, points.dtype).reshape(-1, 1, 2)
     t = torch.linspace(0.0, 1.0, samples, dtype=points.dtype)[:, None]
     for i, j in pairs.tolist():
         line = (1.0 - t) * points[i] + t * points[j]

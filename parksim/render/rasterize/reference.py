@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...camera import pixel_grid
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 
@@ -41,10 +42,7 @@ def rasterize_reference(
     order = torch.argsort(torch.where(keep, depths, torch.inf), stable=True)[: int(keep.sum())]
     mean, conic, color, opac, depth = means2d[order], conics[order], colors[order], opacities[order], depths[order]
 
-    ys, xs = torch.meshgrid(
-        torch.arange(height, dtype=dtype, device=device), torch.arange(width, dtype=dtype, device=device), indexing="ij"
-    )
-    pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+    pix = pixel_grid(width, height, dtype, device).reshape(-1, 2)
     rgb_chunks, trans_chunks, depth_chunks = [], [], []
     for start in range(0, pix.shape[0], chunk_pixels):
         p = pix[start : start + chunk_pixels]
