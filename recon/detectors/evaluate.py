@@ -6,6 +6,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -37,36 +38,41 @@ def _angle_diff_deg(a: float, b: float) -> float:
     return abs(math.degrees(math.remainder(a - b, 2 * math.pi)))
 
 
-def match_points(det: Detections, labels: SlotLabels, opts: MatchOptions) -> list[bool]:
-    """True-positive flag per detected point: the best-scored detections claim the labelled points first."""
-    thr = opts.distance(labels.m_per_px)
-    free = np.ones(len(labels.marks), dtype=bool)
-    flags = [False] * len(det.points)
-    for k in sorted(range(len(det.points)), key=lambda k: -det.points[k].score):
-        p = det.points[k]
+def _greedy_match(scores: list[float], n_labels: int, matches: Callable[[int, int], bool]) -> list[bool]:
+    """True-positive flag per detection: the best-scored detections claim labels first, each label once."""
+    free = np.ones(n_labels, dtype=bool)
+    flags = [False] * len(scores)
+    for k in sorted(range(len(scores)), key=lambda k: -scores[k]):
         for g in np.flatnonzero(free):
-            x, y, d, _ = labels.marks[g]
-            if math.hypot(p.x - x, p.y - y) <= thr and _angle_diff_deg(p.direction, d) <= opts.direction_deg:
+            if matches(k, int(g)):
                 free[g], flags[k] = False, True
                 break
     return flags
+
+
+def match_points(det: Detections, labels: SlotLabels, opts: MatchOptions) -> list[bool]:
+    """Per detected point: within the distance threshold of a labelled point and its direction within limit."""
+    thr = opts.distance(labels.m_per_px)
+
+    def matches(k: int, g: int) -> bool:
+        p, (x, y, d, _) = det.points[k], labels.marks[g]
+        return math.hypot(p.x - x, p.y - y) <= thr and _angle_diff_deg(p.direction, d) <= opts.direction_deg
+
+    return _greedy_match([p.score for p in det.points], len(labels.marks), matches)
 
 
 def match_slots(det: Detections, labels: SlotLabels, opts: MatchOptions) -> list[bool]:
-    """True-positive flag per detected slot: both ordered entrance points match, the angle within its limit."""
+    """Per detected slot: both ordered entrance points match, the angle within its limit."""
     thr = opts.distance(labels.m_per_px)
-    free = np.ones(len(labels.slots), dtype=bool)
-    flags = [False] * len(det.slots)
-    for k in sorted(range(len(det.slots)), key=lambda k: -det.slots[k].score):
+
+    def matches(k: int, g: int) -> bool:
         s = det.slots[k]
         a, b = det.points[s.p1], det.points[s.p2]
-        for g in np.flatnonzero(free):
-            ga, gb = labels.marks[labels.slots[g, 0]], labels.marks[labels.slots[g, 1]]
-            if (math.hypot(a.x - ga[0], a.y - ga[1]) <= thr and math.hypot(b.x - gb[0], b.y - gb[1]) <= thr
-                    and abs(s.angle - labels.slot_angles[g]) <= opts.slot_angle_deg):
-                free[g], flags[k] = False, True
-                break
-    return flags
+        ga, gb = labels.marks[labels.slots[g, 0]], labels.marks[labels.slots[g, 1]]
+        return (math.hypot(a.x - ga[0], a.y - ga[1]) <= thr and math.hypot(b.x - gb[0], b.y - gb[1]) <= thr
+                and abs(s.angle - labels.slot_angles[g]) <= opts.slot_angle_deg)
+
+    return _greedy_match([s.score for s in det.slots], len(labels.slots), matches)
 
 
 @dataclass
