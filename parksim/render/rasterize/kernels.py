@@ -45,6 +45,21 @@ def _tile_box(tile: int, tiles_x: int, width: int, height: int) -> tuple[int, in
     return x0, y0, min(x0 + TILE, width) - 1, min(y0 + TILE, height) - 1
 
 
+@numba.njit(inline="always", cache=True)
+def _start_tile(state, row_live, x0, y0, x1, y1) -> np.float32:
+    """Reset a tile's state (transmittance 1, alive flag on for in-image pixels, other rows 0); returns live pixels.
+
+    row_live[r] gets the live pixel count of tile row r; pixels past the image edge start dead.
+    """
+    state[0] = 1.0
+    state[1:] = 0.0
+    row_live[:] = 0.0
+    for py in range(y0, y1 + 1):
+        state[1, (py - y0) * TILE:(py - y0) * TILE + x1 - x0 + 1] = 1.0
+        row_live[py - y0] = x1 - x0 + 1
+    return np.float32((x1 - x0 + 1) * (y1 - y0 + 1))
+
+
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
 def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank, t_min) -> np.float32:
     """Composite one Gaussian over the TILE pixels of a tile row from index i0; returns how many stopped.
@@ -86,13 +101,7 @@ def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_mi
     would fall below t_min.
     """
     x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
-    state[0] = 1.0
-    state[1:] = 0.0
-    row_live[:] = 0.0
-    for py in range(y0, y1 + 1):
-        state[1, (py - y0) * TILE:(py - y0) * TILE + x1 - x0 + 1] = 1.0  # pixels past the image edge start dead
-        row_live[py - y0] = x1 - x0 + 1
-    alive = np.float32((x1 - x0 + 1) * (y1 - y0 + 1))
+    alive = _start_tile(state, row_live, x0, y0, x1, y1)
     start = offsets[tile]
     for k in range(start, offsets[tile + 1]):
         p = packed[gauss_ids[k]]

@@ -20,6 +20,27 @@ def gaussian_is_drawable(conics: Tensor, opacities: Tensor) -> Tensor:
     return finite & (a > 0) & (a * c - b * b > 0) & (opacities >= ALPHA_MIN)
 
 
+def _depth_sorted(conics: Tensor, opacities: Tensor, depths: Tensor) -> Tensor:
+    """Indices of the drawable Gaussians by ascending depth (ties by index): the compositing order."""
+    keep = gaussian_is_drawable(conics, opacities)
+    return torch.argsort(torch.where(keep, depths, torch.inf), stable=True)[: int(keep.sum())]
+
+
+def _pair_alphas(pix: Tensor, mean: Tensor, conic: Tensor, opac: Tensor) -> Tensor:
+    """[P, M] alpha of every pixel-Gaussian pair: min(ALPHA_MAX, o exp(power)), 0 below ALPHA_MIN."""
+    dx = pix[:, None, 0] - mean[None, :, 0]
+    dy = pix[:, None, 1] - mean[None, :, 1]
+    power = -0.5 * (conic[:, 0] * dx * dx + 2.0 * conic[:, 1] * dx * dy + conic[:, 2] * dy * dy)
+    alpha = torch.clamp(opac * torch.exp(power.clamp(max=0.0)), max=ALPHA_MAX)
+    return torch.where((power <= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+
+
+def _alive(alpha: Tensor) -> Tensor:
+    """[P, M] bool: the pair is composited (transmittance after it stays >= T_MIN; non-increasing, so a prefix)."""
+    with torch.no_grad():
+        return torch.cumprod(1.0 - alpha, dim=1) >= T_MIN
+
+
 def rasterize_reference(
     means2d: Tensor,
     conics: Tensor,
@@ -38,23 +59,14 @@ def rasterize_reference(
     depth is the unnormalised expected depth sum_i d_i alpha_i T_i (divide by alpha for a mean depth).
     """
     dtype, device = means2d.dtype, means2d.device
-    keep = gaussian_is_drawable(conics, opacities)
-    order = torch.argsort(torch.where(keep, depths, torch.inf), stable=True)[: int(keep.sum())]
+    order = _depth_sorted(conics, opacities, depths)
     mean, conic, color, opac, depth = means2d[order], conics[order], colors[order], opacities[order], depths[order]
 
     pix = pixel_grid(width, height, dtype, device).reshape(-1, 2)
     rgb_chunks, trans_chunks, depth_chunks = [], [], []
     for start in range(0, pix.shape[0], chunk_pixels):
-        p = pix[start : start + chunk_pixels]
-        dx = p[:, None, 0] - mean[None, :, 0]
-        dy = p[:, None, 1] - mean[None, :, 1]
-        power = -0.5 * (conic[:, 0] * dx * dx + 2.0 * conic[:, 1] * dx * dy + conic[:, 2] * dy * dy)
-        alpha = torch.clamp(opac * torch.exp(power.clamp(max=0.0)), max=ALPHA_MAX)
-        alpha = torch.where((power <= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
-        with torch.no_grad():
-            # Transmittance after each Gaussian is non-increasing, so this mask is the prefix a pixel composites.
-            alive = torch.cumprod(1.0 - alpha, dim=1) >= T_MIN
-        alpha = alpha * alive
+        alpha = _pair_alphas(pix[start : start + chunk_pixels], mean, conic, opac)
+        alpha = alpha * _alive(alpha)
         trans = torch.cumprod(torch.cat([alpha.new_ones(alpha.shape[0], 1), 1.0 - alpha], dim=1), dim=1)
         weights = alpha * trans[:, :-1]
         rgb_chunks.append(weights @ color)
@@ -65,3 +77,23 @@ def rasterize_reference(
     if bg is not None:
         rgb = rgb + t_final[..., None] * bg.to(dtype)
     return rgb, 1.0 - t_final, torch.cat(depth_chunks).reshape(height, width)
+
+
+@torch.no_grad()
+def max_weights_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, width: int,
+                          height: int, chunk_pixels: int = 4096) -> Tensor:
+    """[M]: each Gaussian's largest blending weight alpha * T over the pixels, the oracle of ``contribution``.
+
+    The Gaussian at which a pixel stops counts with the weight it would have had (see ``contribution``).
+    """
+    order = _depth_sorted(conics, opacities, depths)
+    mean, conic, opac = means2d[order], conics[order], opacities[order]
+    pix = pixel_grid(width, height, means2d.dtype, means2d.device).reshape(-1, 2)
+    best = means2d.new_zeros(order.shape[0])
+    for start in range(0, pix.shape[0], chunk_pixels):
+        alpha = _pair_alphas(pix[start : start + chunk_pixels], mean, conic, opac)
+        alive = _alive(alpha)
+        reached = torch.cat([torch.ones_like(alive[:, :1]), alive[:, :-1]], dim=1)   # not stopped before this one
+        trans = torch.cumprod(torch.cat([alpha.new_ones(alpha.shape[0], 1), 1.0 - alpha * alive], dim=1), dim=1)
+        best = torch.maximum(best, (alpha * trans[:, :-1] * reached).amax(dim=0))
+    return means2d.new_zeros(means2d.shape[0]).index_copy(0, order, best)

@@ -1,0 +1,100 @@
+"""Each Gaussian's largest blending weight in one image: max over pixels of alpha * T, for scene compaction.
+
+A separate pass over the forward kernel's tile bins, so a plain render pays nothing for it. Compositing
+is the forward's (front to back, same thresholds, early stop), without colours. The Gaussian at which a
+pixel stops (it would push T below T_MIN) is counted with the weight alpha * T it would have had: it ends
+the pixel, so dropping it would let later Gaussians in and change the image.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..project_fast import keep_torch_threads
+from .constants import T_MIN, TILE
+from .cpu import _f32, _heaviest_first
+from .kernels import _pair_alpha, _start_tile, _tile_box
+from .tiles import bin_gaussians
+
+__all__ = ["max_weights"]
+
+_ZERO = np.float32(0.0)
+_ONE = np.float32(1.0)
+_HALF = np.float32(0.5)
+
+
+@numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
+def _weight_row(state, i0, dx0, dy, a, b, c, o, t_min) -> tuple[np.float32, np.float32]:
+    """Composite one Gaussian over a tile row; returns (its largest weight there, pixels that stopped).
+
+    state rows: transmittance, alive flag.
+    """
+    p0 = -_HALF * c * dy * dy
+    p1 = -b * dy
+    p2 = -_HALF * a
+    best = _ZERO
+    stopped = _ZERO
+    for j in range(TILE):
+        i = np.uint64(i0) + np.uint64(j)
+        dx = dx0 + np.float32(j)
+        alpha, _ = _pair_alpha(o, p0 + dx * (p1 + dx * p2))
+        t = state[0, i]
+        alive = state[1, i]
+        w = alpha * t * alive
+        stop = t * (_ONE - alpha) < t_min
+        best = max(best, w)
+        state[0, i] = t if stop else t - w
+        stopped += alive if stop else _ZERO
+        state[1, i] = _ZERO if stop else alive
+    return best, stopped
+
+
+@numba.njit(fastmath=True, error_model="numpy", cache=True)
+def _weights_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_min, state, row_live, best):
+    """Composite one tile front to back, raising best[g] to each Gaussian's largest weight in it."""
+    x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
+    alive = _start_tile(state, row_live, x0, y0, x1, y1)
+    for k in range(offsets[tile], offsets[tile + 1]):
+        g = gauss_ids[k]
+        p = packed[g]
+        for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
+            if row_live[py - y0] < _HALF:
+                continue
+            w, stopped = _weight_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
+                                     p[2], p[3], p[4], p[5], t_min)
+            best[g] = max(best[g], w)
+            row_live[py - y0] -= stopped
+            alive -= stopped
+        if alive < _HALF:
+            break
+
+
+@numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
+def _max_weights(offsets, gauss_ids, packed, tiles_x, tile_order, width, height, t_min, best):
+    """All tiles dealt over best.shape[0] threads, each raising its own row of best [n_workers, M]."""
+    n_workers = best.shape[0]
+    for worker in numba.prange(n_workers):
+        state = np.empty((2, TILE * TILE), np.float32)
+        row_live = np.empty(TILE, np.float32)
+        for j in range(worker, tile_order.shape[0], n_workers):
+            _weights_tile(tile_order[j], offsets, gauss_ids, packed, tiles_x, width, height, t_min, state,
+                          row_live, best[worker])
+
+
+def max_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, width: int, height: int,
+                t_min: float = T_MIN) -> Tensor:
+    """[M] float32: each Gaussian's largest blending weight alpha * T over the image's pixels (0 if none).
+
+    Same inputs and compositing as ``rasterize(..., backend="numba")``; culled Gaussians get 0.
+    """
+    m = means2d.shape[0]
+    inputs = [_f32(t) for t in (means2d, conics, torch.zeros(m, 3), opacities, depths)]
+    best = np.zeros((numba.get_num_threads(), m), np.float32)
+    with keep_torch_threads():
+        bins = bin_gaussians(*inputs, width, height)
+        _max_weights(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, _heaviest_first(bins), width, height,
+                     np.float32(t_min), best)
+    return torch.from_numpy(best.max(axis=0, initial=0.0))
