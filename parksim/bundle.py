@@ -6,6 +6,7 @@ rig.json           the rig the scene was trained with, BEV spec included (Rig.sa
 map.json           the dataset's world slot map and obstacles (optional)
 bundle.json        metadata: format version, source dataset, iterations, per-camera response
 config.yaml        the training config used (optional)
+visibility.npz     per-region visibility written by ``parksim compact`` (optional, named in bundle.json)
 metrics.jsonl/png  training metrics (optional)
 ```
 ``load(dir)`` reads it back for rendering; ``save`` writes each file atomically.
@@ -21,13 +22,14 @@ from typing import Any
 from .fileio import atomic_write, write_json
 from .gaussians import GaussianScene, PLYFormatError
 from .rig import BEVSpec, CalibrationError, Rig
+from .visibility import VisibilityGrid
 
 __all__ = ["Bundle", "BundleError", "load", "save", "BUNDLE_VERSION"]
 
 BUNDLE_VERSION = 1
 """Bumped when the bundle layout changes incompatibly."""
 
-GAUSSIANS, RIG, MAP, META = "gaussians.ply", "rig.json", "map.json", "bundle.json"
+GAUSSIANS, RIG, MAP, META, VISIBILITY = "gaussians.ply", "rig.json", "map.json", "bundle.json", "visibility.npz"
 
 
 class BundleError(ValueError):
@@ -36,12 +38,16 @@ class BundleError(ValueError):
 
 @dataclass
 class Bundle:
-    """A trained scene: Gaussians, the rig (with its BEV spec), the world map and metadata."""
+    """A trained scene: Gaussians, the rig (with its BEV spec), the world map, metadata, optional visibility grid.
+
+    ``meta["visibility"]`` names the grid's file and is kept in step with ``visibility`` by ``save``.
+    """
 
     scene: GaussianScene
     rig: Rig
     map: dict[str, Any] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    visibility: VisibilityGrid | None = None
 
     @property
     def bev(self) -> BEVSpec:
@@ -56,7 +62,11 @@ def save(directory: str | Path, bundle: Bundle) -> Path:
     atomic_write(directory / RIG, bundle.rig.save)
     if bundle.map is not None:
         write_json(directory / MAP, bundle.map)
-    write_json(directory / META, {"version": BUNDLE_VERSION, **bundle.meta})
+    meta = {k: v for k, v in bundle.meta.items() if k != "visibility"}
+    if bundle.visibility is not None:
+        atomic_write(directory / VISIBILITY, bundle.visibility.save)
+        meta["visibility"] = VISIBILITY
+    write_json(directory / META, {"version": BUNDLE_VERSION, **meta})
     return directory
 
 
@@ -86,4 +96,19 @@ def load(directory: str | Path) -> Bundle:
         raise BundleError(str(e)) from None
     world_map = _read_json(directory / MAP) if (directory / MAP).is_file() else None
     meta.pop("version")
-    return Bundle(scene, rig, world_map, meta)
+    return Bundle(scene, rig, world_map, meta, _load_visibility(directory, meta.get("visibility"), len(scene)))
+
+
+def _load_visibility(directory: Path, name: Any, n_gaussians: int) -> VisibilityGrid | None:
+    """The grid named in bundle.json (None when it names none), checked against the scene's Gaussian count."""
+    if name is None:
+        return None
+    path = directory / str(name)
+    if not path.is_file():
+        raise BundleError(f"{directory}: bundle.json names a visibility grid {name!r} that is missing")
+    try:
+        grid = VisibilityGrid.load(path)
+        grid.check(n_gaussians)
+    except ValueError as e:
+        raise BundleError(str(e)) from None
+    return grid

@@ -18,7 +18,7 @@ import sys
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "reconstruct", "eval", "colmap", "detector", "render", "ipm", "serve", "bench"]
+COMMANDS = ["demo", "synth", "reconstruct", "eval", "colmap", "detector", "render", "ipm", "serve", "bench", "compact"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -17,7 +17,9 @@ from __future__ import annotations
 import io
 import json
 import math
+import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -28,6 +30,8 @@ __all__ = ["Frame", "RequestError", "LocalSim", "RemoteSim", "encode_npz", "deco
 
 MIN_IMAGE_SIDE = 4
 """Smallest rendered image side (px) a ``scale`` may produce."""
+SUBSETS_KEPT = 16
+"""Visibility-cell subsets of the scene a ``LocalSim`` keeps (a planner moves through a few cells at a time)."""
 """BEV (IPM) grids kept per scene, one per recently used scale."""
 
 
@@ -101,6 +105,8 @@ class LocalSim:
         self.bundle: Bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
         self.id = scene_id
         self.bounds = self._bounds()
+        self._subsets: OrderedDict[int, Any] = OrderedDict()
+        self._subsets_lock = threading.Lock()
 
     @classmethod
     def from_dir(cls, directory: str | Path) -> "LocalSim":
@@ -120,6 +126,35 @@ class LocalSim:
     @property
     def cameras(self) -> list[str]:
         return self.bundle.rig.names
+
+    def scene_at(self, pose: Sequence[float]) -> Any:
+        """The Gaussians to render at ``pose``: its visibility cell's subset when the bundle has a grid, else all.
+
+        Only planar poses (z = 0, level) use a cell: the grid was measured at such poses.
+        """
+        from .geometry import as_pose
+        from .visibility import PLANAR_TOL
+
+        grid, scene = self.bundle.visibility, self.bundle.scene
+        if grid is None:
+            return scene
+        T = as_pose(list(pose))
+        planar = abs(float(T[2, 3])) <= PLANAR_TOL and 1.0 - float(T[2, 2]) <= PLANAR_TOL
+        cell = grid.cell_of(float(T[0, 3]), float(T[1, 3])) if planar else None
+        if cell is None:
+            return scene
+        with self._subsets_lock:
+            if cell in self._subsets:
+                self._subsets.move_to_end(cell)
+                return self._subsets[cell]
+        import torch
+
+        subset = scene.subset(torch.from_numpy(grid.members(cell)).long())
+        with self._subsets_lock:
+            self._subsets[cell] = subset
+            while len(self._subsets) > SUBSETS_KEPT:
+                self._subsets.popitem(last=False)
+        return subset
 
     def image_size(self, camera: str, scale: float) -> tuple[int, int]:
         """(width, height) of ``camera`` rendered at ``scale``."""
@@ -156,7 +191,7 @@ class LocalSim:
         frame = Frame()
         start = time.perf_counter()
         if needed:
-            res = render(self.bundle.scene, self.bundle.rig, list(pose), cameras=needed, scale=scale)
+            res = render(self.scene_at(pose), self.bundle.rig, list(pose), cameras=needed, scale=scale)
             frame.images = {n: to_uint8(res.images[n]) for n in names}
             if depth:
                 frame.depth = {n: res.depth[n].detach().numpy().astype(np.float32) for n in names}

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["atomic_write", "write_json"]
+__all__ = ["atomic_write", "write_json", "atomic_directory"]
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
@@ -25,3 +26,21 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
 def write_json(path: str | Path, data: Any) -> None:
     """Atomically write indented JSON."""
     atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=1) + "\n"))
+
+
+def atomic_directory(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Fill a temp folder next to ``path`` with ``write(tmp)``, then swap it in: the folder appears complete or not at all.
+
+    An existing ``path`` is replaced (the caller decides whether that is allowed).
+    """
+    path = Path(path)
+    tmp, old = (path.with_name(f".{path.name}.{kind}{os.getpid()}") for kind in ("tmp", "old"))
+    try:
+        tmp.mkdir(parents=True)
+        write(tmp)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
