@@ -59,7 +59,8 @@ def test_marks_lie_on_painted_lines(scene):
 
 
 def test_shapes_and_directions(renderer):
-    """T where the entrance line continues both ways, L at row ends; directions point into the slot."""
+    """T where the entrance line continues both ways, L at row ends; directions point into the slot; the slot
+    angle is the one from the entrance p1 -> p2 to the separators (120 deg for a 60 deg slant on the +y side)."""
     g = renderer.garage
     for s in g.slots:
         a, b = g.marks[s.p1], g.marks[s.p2]
@@ -67,6 +68,9 @@ def test_shapes_and_directions(renderer):
         into = np.array([np.cos(a.direction), np.sin(a.direction)])
         # slot on the right of p1 -> p2: cross(entrance, into) < 0 in the world (z up)
         assert entrance[0] * into[1] - entrance[1] * into[0] < 0
+        cos = entrance @ into / np.linalg.norm(entrance)
+        assert s.angle_deg == pytest.approx(np.degrees(np.arccos(cos)), abs=1e-6)
+    assert {s.angle_deg for s in g.slots if s.kind == "slanted"} == {60.0, 120.0}
     shapes = [m.shape for m in g.marks]
     assert "T" in shapes and "L" in shapes
 
@@ -155,4 +159,4 @@ def test_labels_json_is_dmpr_like(scene):
     for m in data["marks"]:
         assert set(m) >= {"x", "y", "direction", "shape"} and m["shape"] in ("T", "L")
     for s in data["slots"]:
-        assert s["type"] in ("perpendicular", "parallel", "slanted") and 0 < s["angle"] <= 90
+        assert s["type"] in ("perpendicular", "parallel", "slanted") and 0 < s["angle"] < 180

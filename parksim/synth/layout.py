@@ -77,7 +77,8 @@ class MarkingPoint:
 
 @dataclass(frozen=True)
 class Slot:
-    """A parking slot: entrance marking points ``p1, p2`` (indices into ``Garage.marks``), kind, angle."""
+    """A parking slot: entrance marking points ``p1, p2`` (indices into ``Garage.marks``; the slot lies right of
+    p1 -> p2), kind, ``angle_deg`` from the entrance p1 -> p2 to the separators (0..180), depth, occupancy."""
 
     p1: int
     p2: int
@@ -197,11 +198,13 @@ class _RowBuilder:
         if kind != "slanted":
             self.g.paint.append(_segment(np.array([x0, e + back]), np.array([x1, e + back]), w, self.color))
         tip = max(0.0, sep[0] * depth)  # slanted separators lean past the bay's last entrance point
+        # p1 -> p2 keeps the slot on the right-hand side when looking from p1 to p2 in the world, so the entrance
+        # runs along +x (side -1) or -x (side +1); the slot angle is measured from it to the separators.
+        slot_angle = angle if side < 0 else 180.0 - angle
         for i in range(n):
             occupied = bool(self.rng.random() < self.p.occupancy)
-            # p1 -> p2 keeps the slot on the right-hand side when looking from p1 to p2 in the world.
             p1, p2 = (first + i, first + i + 1) if side < 0 else (first + i + 1, first + i)
-            self.g.slots.append(Slot(p1, p2, kind, angle, depth, occupied))
+            self.g.slots.append(Slot(p1, p2, kind, slot_angle, depth, occupied))
             if occupied:
                 self._park(np.array([x0 + (i + 0.5) * step, e]), sep, depth, kind)
         return x1 + tip
