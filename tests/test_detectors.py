@@ -190,6 +190,19 @@ def test_ps2_labels_bad_values_give_clear_errors(tmp_path, data, message):
         read_ps2_labels(path)
 
 
+def test_parksim_slot_angle_must_agree_with_its_points():
+    # Entrance 1 -> 0 runs left, separators lean up-right: the slot angle is 135 deg, not the slant's 45.
+    marks = [{"x": x, "y": 300.0, "direction": -math.pi / 4, "shape": "T"} for x in (150.0, 300.0)]
+
+    def labels(angle: float | None) -> SlotLabels:
+        slot = {"p1": 1, "p2": 0} if angle is None else {"p1": 1, "p2": 0, "angle": angle}
+        return SlotLabels.from_parksim({"marks": marks, "slots": [slot]}, 600, 600, M_PER_PX, "f/000001.json")
+
+    assert labels(135.0).slot_angles[0] == 135.0 and labels(None).slot_angles[0] == pytest.approx(135.0)
+    with pytest.raises(LabelError, match=r"f/000001.json: slot 0 has angle 45 deg but .* make 135 deg"):
+        labels(45.0)
+
+
 def test_gcn_graph_without_nodes_stays_finite():
     torch.manual_seed(0)
     model = GCNDetector(width=0.125, input_size=64, descriptor_dim=16, graph_layers=1, heads=2)

@@ -42,7 +42,8 @@ def _parksim_items(folder: Path, split: str) -> Iterator[BEVItem]:
     frames = reader.frames if split == "all" else reader.split[split]
     for f in frames:
         image = (reader.ipm(f).numpy() * 255.0 + 0.5).astype(np.uint8)
-        labels = SlotLabels.from_parksim(reader.labels(f), bev.width, bev.height, bev.m_per_px)
+        labels = SlotLabels.from_parksim(reader.labels(f), bev.width, bev.height, bev.m_per_px,
+                                         reader.layout.labels(f))
         yield BEVItem(f"{folder.name}/{f}", image, labels)
 
 

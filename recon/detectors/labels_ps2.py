@@ -19,6 +19,8 @@ __all__ = ["SlotLabels", "LabelError", "read_ps2_labels", "slot_angle_deg", "PS2
 
 PS2_METRES = 10.0
 """Side of a ps2.0 image in metres (600 px = 10 m)."""
+ANGLE_TOLERANCE_DEG = 20.0
+"""Largest gap between a ParkSim slot's labelled angle and the angle its entrance points make (labels are exact)."""
 
 
 class LabelError(ValueError):
@@ -40,14 +42,17 @@ class SlotLabels:
     m_per_px: float
 
     @classmethod
-    def from_parksim(cls, data: Mapping[str, Any], width: int, height: int, m_per_px: float) -> "SlotLabels":
-        """From a ParkSim label dict (``DatasetReader.labels``), already validated by the reader."""
+    def from_parksim(cls, data: Mapping[str, Any], width: int, height: int, m_per_px: float,
+                     source: str | Path = "labels") -> "SlotLabels":
+        """From a ParkSim label dict (``DatasetReader.labels``, which checks the values) read from ``source``;
+        slot angles must agree with the entrance points (``LabelError`` names ``source`` otherwise)."""
         marks = np.array([[m["x"], m["y"], m["direction"], 1.0 if m["shape"] == "L" else 0.0] for m in data["marks"]],
                          dtype=np.float64).reshape(-1, 4)
         slots = np.array([[s["p1"], s["p2"]] for s in data["slots"]], dtype=np.int64).reshape(-1, 2)
         angles = np.array([float(s.get("angle", math.nan)) for s in data["slots"]], dtype=np.float64)
         labels = cls(marks, slots, angles, width, height, m_per_px)
         labels.fill_angles()
+        labels.check_angles(source)
         return labels
 
     def fill_angles(self) -> None:
@@ -55,6 +60,17 @@ class SlotLabels:
         for k in np.flatnonzero(~np.isfinite(self.slot_angles)):
             a, b = self.marks[self.slots[k, 0]], self.marks[self.slots[k, 1]]
             self.slot_angles[k] = slot_angle_deg(a[0], a[1], a[2], b[0], b[1], b[2])
+
+    def check_angles(self, source: str | Path, tolerance_deg: float = ANGLE_TOLERANCE_DEG) -> None:
+        """Reject slots whose angle disagrees with the one from their entrance p1 -> p2 to their points' directions
+        (a convention error such as a slanted slot labelled ``a`` instead of ``180 - a``; it fails every match)."""
+        for k, ((i, j), angle) in enumerate(zip(self.slots, self.slot_angles)):
+            a, b = self.marks[i], self.marks[j]
+            geometric = slot_angle_deg(a[0], a[1], a[2], b[0], b[1], b[2])
+            if abs(angle - geometric) > tolerance_deg:
+                raise LabelError(source, f"slot {k} has angle {angle:g} deg but its entrance p1 -> p2 and its "
+                                         f"points' directions make {geometric:.0f} deg (labels from before the "
+                                         f"synth fix of slanted slot angles? regenerate them)")
 
 
 def slot_angle_deg(xa: float, ya: float, da: float, xb: float, yb: float, db: float) -> float:
