@@ -2,10 +2,13 @@
 
 Inputs drawn: points on the optical axis, at and next to the camera centre, behind it, in the 85-100 deg
 band of a 190 deg lens and beyond the lens; scales from 1e-8 to 1e3; degenerate quaternions; opacities
-at 0 and 1. The long soak runs live in benchmarks, not here.
+at 0 and 1; constant and empty-mask images through the losses; ego poses at and past the scene's edge.
+CI runs ``EXAMPLES`` per property; ``parksim bench stress`` sets ``PARKSIM_STRESS_EXAMPLES`` to run many
+more through this same code. The long soaks are benchmarks (``parksim bench soak-*``), not tests.
 """
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -22,7 +25,9 @@ def max_abs(t: torch.Tensor) -> float:
     """Largest magnitude, 0 for an empty tensor."""
     return float(t.detach().abs().max()) if t.numel() else 0.0
 
-SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+EXAMPLES = int(os.environ.get("PARKSIM_STRESS_EXAMPLES", "40"))
+"""Examples per property: CI's default, raised by ``parksim bench stress``."""
+SETTINGS = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def cameras():
@@ -70,6 +75,7 @@ def test_unproject_any_pixel_is_a_unit_ray(uvs, ci):
     assert ((rays.norm(dim=-1) - 1).abs() < 1e-5).all()
 
 
+opacity = st.one_of(st.sampled_from([0.0, 1.0]), st.floats(0.0, 1.0))
 gaussian = st.tuples(
     angle_deg, azimuth, distance,
     st.floats(math.log(1e-8), math.log(1e3)),                       # log-scale
@@ -100,7 +106,7 @@ def test_projection_is_finite_with_finite_gradients(gs, ci, backend):
 
 
 @SETTINGS
-@given(st.integers(0, 40), st.floats(-3, 3), st.floats(0.0, 1.0), st.sampled_from([1e-6, 1e-2, 1.0, 1e2, 1e6]),
+@given(st.integers(0, 40), st.floats(-3, 3), opacity, st.sampled_from([1e-6, 1e-2, 1.0, 1e2, 1e6]),
        st.integers(0, 2**31 - 1))
 def test_rasterizer_is_finite_and_matches_the_reference(m, log_size, opacity, conic_scale, seed):
     g = torch.Generator().manual_seed(seed)
@@ -134,7 +140,8 @@ def tiny_ipm():
     return rig, IPM(rig)
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=max(1, EXAMPLES * 3 // 8), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(fill=st.sampled_from([0.0, 1.0, 1e-30, 0.5]), seed=st.integers(0, 2**31 - 1))
 def test_ipm_is_finite_for_constant_and_random_images(fill, seed, tiny_ipm):
     rig, ipm = tiny_ipm
@@ -148,3 +155,92 @@ def test_ipm_is_finite_for_constant_and_random_images(fill, seed, tiny_ipm):
     if fill != 0.5:
         # A constant image maps to the same constant wherever a camera sees the ground.
         assert np.allclose(bev[ipm.mask].detach().numpy(), fill, rtol=1e-5, atol=1e-30)
+
+
+image_fill = st.one_of(st.sampled_from([0.0, 1.0, 1e-30]), st.none())   # None: random pixels
+mask_kind = st.sampled_from(["empty", "one pixel", "random", "full"])
+
+
+def image(fill: float | None, h: int, w: int, g: torch.Generator) -> torch.Tensor:
+    """A [1, 3, H, W] float64 image: constant ``fill`` or uniform random."""
+    return torch.rand(1, 3, h, w, generator=g, dtype=torch.float64) if fill is None else \
+        torch.full((1, 3, h, w), fill, dtype=torch.float64)
+
+
+def mask(kind: str, h: int, w: int, g: torch.Generator) -> torch.Tensor:
+    """A [1, 1, H, W] float64 mask of valid pixels."""
+    m = torch.zeros(1, 1, h, w, dtype=torch.float64)
+    if kind == "one pixel":
+        m[..., h // 2, w // 2] = 1
+    elif kind == "random":
+        m = (torch.rand(1, 1, h, w, generator=g) < 0.5).double()
+    elif kind == "full":
+        m += 1
+    return m
+
+
+@SETTINGS
+@given(image_fill, image_fill, mask_kind, st.floats(0.0, 1.0), st.integers(6, 24), st.integers(6, 24),
+       st.integers(0, 2**31 - 1))
+def test_losses_are_finite_with_finite_gradients_and_float32_agrees(pred_fill, gt_fill, mask_of, lam, h, w, seed):
+    from recon.losses import photometric_loss
+
+    g = torch.Generator().manual_seed(seed)
+    pred64, gt64, m64 = image(pred_fill, h, w, g), image(gt_fill, h, w, g), mask(mask_of, h, w, g)
+    pred32 = pred64.float().requires_grad_(True)
+    loss32 = photometric_loss(pred32, gt64.float(), m64.float(), lam)
+    loss32.backward()
+    assert torch.isfinite(loss32) and torch.isfinite(pred32.grad).all()
+    pred64.requires_grad_(True)
+    loss64 = photometric_loss(pred64, gt64, m64, lam)
+    loss64.backward()
+    # SSIM's local variances cancel in float32 (var = E[x^2] - E[x]^2 ~ 1e-7 absolute error, over C2 = 9e-4).
+    assert abs(loss32.item() - loss64.item()) < 1e-3
+    assert max_abs(pred32.grad.double() - pred64.grad) < 1e-3 * max(1.0, max_abs(pred64.grad))
+
+
+@pytest.fixture(scope="module")
+def tiny_rig():
+    from test_ipm import avm_rig
+
+    return avm_rig(w=32, h=24, bev_px=16)
+
+
+SCENE_BOX = ((0.0, -3.0, 0.0), (10.0, 3.0, 2.5))
+"""The stress scene's Gaussians lie in this box (metres); poses are drawn on and past its edges."""
+edge_coordinate = st.one_of(st.sampled_from([0.0, 1.0]), st.floats(-0.5, 1.5))   # fraction of the box's side
+render_gaussian = st.tuples(st.floats(0, 1), st.floats(0, 1), st.floats(0, 1),
+                            st.floats(math.log(1e-8), math.log(1e3)), opacity,
+                            st.one_of(st.just((0.0, 0.0, 0.0, 0.0)), st.tuples(*[st.floats(-1, 1)] * 4)))
+
+
+@settings(max_examples=max(1, EXAMPLES // 2), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(gs=st.lists(render_gaussian, min_size=1, max_size=12), fx=edge_coordinate, fy=edge_coordinate,
+       yaw=st.floats(-math.pi, math.pi), method=st.sampled_from(["ut", "ewa"]))
+def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, yaw, method, tiny_rig):
+    from parksim.gaussians import GaussianScene
+    from parksim.render import render
+
+    lo, hi = torch.tensor(SCENE_BOX[0]), torch.tensor(SCENE_BOX[1])
+    means = lo + torch.tensor([g[:3] for g in gs]) * (hi - lo)
+    log_scales = torch.tensor([[s, s - 1.0, s + 0.5] for *_, s, _, _ in gs])
+    # Opacity exactly 0 or 1 is logit -inf or +inf: clamp to the float32 logits of the nearest representable values.
+    opacities = torch.tensor([o for *_, o, _ in gs]).clamp(1e-7, 1 - 1e-7)
+    quats = torch.tensor([q for *_, q in gs])
+    sh = torch.rand(len(gs), 4, 3, generator=torch.Generator().manual_seed(len(gs)))
+    params = [t.requires_grad_(True) for t in (means, quats, log_scales, torch.logit(opacities), sh)]
+    scene = GaussianScene(*params, sh_degree=1)
+    x, y = (SCENE_BOX[0][i] + f * (SCENE_BOX[1][i] - SCENE_BOX[0][i]) for i, f in ((0, fx), (1, fy)))
+    out = render(scene, tiny_rig, (x, y, yaw), bev=True, method=method)
+    for name in tiny_rig.names:
+        assert torch.isfinite(out.images[name]).all() and torch.isfinite(out.depth[name]).all()
+        assert ((out.alpha[name] >= 0) & (out.alpha[name] <= 1 + 1e-6)).all()
+    assert torch.isfinite(out.bev).all()
+    (sum(img.sum() for img in out.images.values()) + out.bev.sum()).backward()
+    for t in params:
+        assert t.grad is None or torch.isfinite(t.grad).all()
+    with torch.no_grad():
+        ref = render(scene.to(torch.float64), tiny_rig, (x, y, yaw), method=method, backend="torch")
+    for name in tiny_rig.names:
+        assert max_abs(out.images[name].double() - ref.images[name]) < 1e-3

@@ -79,8 +79,8 @@ def knob_grid(args: argparse.Namespace, n_inputs: int, sh_degree: int, camera_na
     points += [replace(base, knob="method", method=m) for m in args.methods if m != "ut"]
     for spec in args.camera_sets:
         names, bev = spec.removesuffix("+bev"), spec.endswith("+bev")
-        cams = tuple(camera_names) if names == "all" else tuple(names.split("+"))
-        if (cams, bev) != (tuple(camera_names), False):
+        cams = None if names == "all" else tuple(names.split("+"))
+        if (cams, bev) != (None, False):
             points.append(replace(base, knob="cameras", cameras=cams, bev=bev))
     points += [replace(base, knob="backend", backend=b) for b in args.backends if b != "auto"]
     points += [replace(base, knob="threads", threads=t) for t in args.threads if t != base.threads]

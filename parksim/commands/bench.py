@@ -70,7 +70,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="dataset giving pose, rig and ground truth (default: the first bundle's; with no bundle a "
                         "garage-like scene of --gaussians is built from its points; default data/scene1_320, or "
                         "synth tiny under --quick)")
-    _option(r, "--gaussians", 200_000, 2_000, "Gaussians of the built scene when no --bundle is given", int)
+    _option(r, "--gaussians", 200_000, 500, "Gaussians of the built scene when no --bundle is given", int)
     r.add_argument("--frame", type=int, help="dataset frame whose pose is rendered (default: first test frame)")
     _option(r, "--scales", [1.0, 0.75, 0.5, 0.25], [1.0, 0.5], "resolution scales of the fisheye views", _floats)
     _option(r, "--sh-degrees", [0, 1, 2], [0], "SH degree caps (values >= the scene's degree are skipped)", _ints)
