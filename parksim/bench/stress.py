@@ -54,7 +54,7 @@ def run_suite(tests: Path, examples: int, seed: int, quiet: bool) -> tuple[dict[
 
     def seen(observation: Any) -> None:
         if observation.type == "test_case":
-            cases[observation.property.split(".")[-1]][observation.status] += 1
+            cases[observation.property.split("::")[-1]][observation.status] += 1
 
     collect_coverage = observability.OBSERVABILITY_COLLECT_COVERAGE
     observability.OBSERVABILITY_COLLECT_COVERAGE = False
