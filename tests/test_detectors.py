@@ -72,6 +72,15 @@ def test_infer_slots_rejects_wrong_direction_and_length():
     assert [(s.p1, s.p2) for s in infer_slots(parallel, M_PER_PX, DecodeOptions())] == [(1, 0)]
 
 
+def test_slanted_slot_width_is_measured_across_the_separators():
+    # Separators at 60 deg to the entrance 1 -> 0: a 2.6 m wide slot has a 3.0 m entrance; two slanted bays leave
+    # 3.7 m of floor between their end points (3.2 m across the separators), which is no slot.
+    lean = math.atan2(-math.sin(math.radians(60)), -math.cos(math.radians(60)))
+    slot = _row([100.0, 100.0 + 3.0 / M_PER_PX], direction=lean)
+    assert [(s.p1, s.p2, round(s.angle)) for s in infer_slots(slot, M_PER_PX, DecodeOptions())] == [(1, 0, 60)]
+    assert infer_slots(_row([100.0, 100.0 + 3.7 / M_PER_PX], direction=lean), M_PER_PX, DecodeOptions()) == []
+
+
 def test_l_point_bounds_one_slot():
     points = _row([150.0, 300.0, 450.0], shapes="TLT")
     assert len(infer_slots(points, M_PER_PX, DecodeOptions())) == 1

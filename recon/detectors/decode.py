@@ -44,13 +44,15 @@ class Detections:
 
 @dataclass(frozen=True)
 class DecodeOptions:
-    """Decoding thresholds; distances in metres so they hold at any BEV scale (DMPR-PS' values at 600 px = 10 m)."""
+    """Decoding thresholds (DMPR-PS' rules); distances in metres so they hold at any BEV scale."""
 
     threshold: float = 0.5          # marking-point confidence
     margin: float = 0.01            # drop points this close to the border (fraction of the BEV side)
     nms: float = 1.0 / 16           # suppress weaker points within this box half-size (fraction of the side)
-    short_entrance_m: tuple[float, float] = (2.0, 4.2)   # perpendicular and slanted slots
-    long_entrance_m: tuple[float, float] = (5.0, 7.5)    # parallel slots
+    # Slot width across the separators (entrance length x sin of the slot angle), so that a slanted slot and the
+    # longer floor gap between two slanted bays differ: ParkSim's (ps2.0-like) slots are 2.5-2.6 m wide, parallel 6 m.
+    short_width_m: tuple[float, float] = (2.0, 2.9)      # perpendicular and slanted slots
+    long_width_m: tuple[float, float] = (5.5, 7.0)       # parallel slots
     through_cos: float = 0.8        # a third point k with cos(i->k, k->j) above this lies on the entrance i-j
     separator_deg: float = 60.0     # max angle between a point's direction and the entrance's right normal
     parallel_deg: float = 20.0      # max angle between the two points' directions
@@ -83,14 +85,14 @@ def _unit(angle: float) -> np.ndarray:
 
 
 def _pair_ok(points: list[MarkingPoint], i: int, j: int, m_per_px: float, opts: DecodeOptions) -> bool:
-    """DMPR-PS pairing rules for the ordered pair i -> j: entrance length, no point between, separator geometry."""
+    """DMPR-PS pairing rules for the ordered pair i -> j: slot width, no point between, separator geometry."""
     a, b = points[i], points[j]
     vec = np.array([b.x - a.x, b.y - a.y])
     length = float(np.linalg.norm(vec))
-    metres = length * m_per_px
-    lo, hi = opts.short_entrance_m
-    lo2, hi2 = opts.long_entrance_m
-    if not (lo <= metres <= hi or lo2 <= metres <= hi2):
+    width = length * m_per_px * math.sin(math.radians(slot_angle_deg(a.x, a.y, a.direction, b.x, b.y, b.direction)))
+    lo, hi = opts.short_width_m
+    lo2, hi2 = opts.long_width_m
+    if not (lo <= width <= hi or lo2 <= width <= hi2):
         return False
     for k, p in enumerate(points):
         if k in (i, j):
