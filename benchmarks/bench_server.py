@@ -12,8 +12,6 @@ import argparse
 import datetime
 import os
 import platform
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -28,22 +26,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from sim_fixtures import make_bundle  # noqa: E402
 
-_SERVER = "import sys, uvicorn; from server import create_app; uvicorn.run(create_app(sys.argv[1]), " \
-          "host='127.0.0.1', port=int(sys.argv[2]), log_level='warning')"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _rss_mib(pid: int) -> float:
-    """Resident memory of a process (MiB), from /proc."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError(f"no VmRSS for pid {pid}")
+from parksim.bench.procs import rss_mib, serve_bundle  # noqa: E402
 
 
 def _pose(rng: np.random.Generator) -> str:
@@ -104,31 +87,17 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         bundle = make_bundle(Path(tmp) / "scene1", preset="scene1", n=args.gaussians, size=(640, 480))
-        port = _free_port()
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
-        proc = subprocess.Popen([sys.executable, "-c", _SERVER, str(bundle), str(port)], env=env, cwd=ROOT)
-        base = f"http://127.0.0.1:{port}"
-        try:
-            with httpx.Client(base_url=base, timeout=300) as client:
-                for _ in range(600):
-                    try:
-                        if client.get("/healthz").status_code == 200:
-                            break
-                    except httpx.HTTPError:
-                        time.sleep(0.5)
-                mem_start = _rss_mib(proc.pid)
-                cases = {"4 views + BEV": {"bev": "on"}, "one view (front)": {"cameras": "front"},
-                         "BEV only": {"cameras": "", "bev": "on"}}
-                for params in cases.values():      # warm-up: JIT compilation and the per-scale IPM grids
-                    client.get("/render", params={**params, "pose": "20,0,0"}).raise_for_status()
-                mem_before = _rss_mib(proc.pid)
-                latency = {name: _latency(client, p, args.requests, i) for i, (name, p) in enumerate(cases.items())}
-                load = _load(base, {"bev": "on"}, args.clients, args.duration)
-                mem_after = _rss_mib(proc.pid)
-                metrics = client.get("/metrics").text
-        finally:
-            proc.terminate()
-            proc.wait(30)
+        with serve_bundle(bundle, startup_s=300) as server, httpx.Client(base_url=server.base, timeout=300) as client:
+            mem_start = rss_mib(server.pid)
+            cases = {"4 views + BEV": {"bev": "on"}, "one view (front)": {"cameras": "front"},
+                     "BEV only": {"cameras": "", "bev": "on"}}
+            for params in cases.values():      # warm-up: JIT compilation and the per-scale IPM grids
+                client.get("/render", params={**params, "pose": "20,0,0"}).raise_for_status()
+            mem_before = rss_mib(server.pid)
+            latency = {name: _latency(client, p, args.requests, i) for i, (name, p) in enumerate(cases.items())}
+            load = _load(server.base, {"bev": "on"}, args.clients, args.duration)
+            mem_after = rss_mib(server.pid)
+            metrics = client.get("/metrics").text
     _write(args, latency, load, (mem_start, mem_before, mem_after), metrics)
 
 
