@@ -68,6 +68,18 @@ def test_edge_tube_hand_values() -> None:
     assert edge_tubes(points, torch.zeros(0, 2, dtype=torch.long), (5, 9)).abs().sum() == 0
 
 
+def test_edge_tubes_in_boxes_match_the_whole_grid() -> None:
+    points = torch.tensor([[3.0, 4.0], [40.0, 25.0], [12.0, 30.0], [-2.0, 1.0]])
+    pairs = torch.tensor([[0, 1], [1, 2], [2, 3]])
+    size, sigma = (32, 48), 1.5
+    grid = torch.stack(torch.meshgrid(torch.arange(48.0), torch.arange(32.0), indexing="xy"), -1).reshape(-1, 1, 2)
+    t = torch.linspace(0.0, 1.0, 32)[:, None]
+    full = torch.stack([torch.exp(-((grid - ((1 - t) * points[i] + t * points[j])) ** 2).sum(-1).amin(1)
+                                  / (2 * sigma ** 2)) for i, j in pairs.tolist()]).amax(0).reshape(size)
+    torch.testing.assert_close(edge_tubes(points, pairs, size, sigma), full, atol=5e-6, rtol=0)
+    assert float(edge_tubes(points, pairs, size, sigma).amax()) == pytest.approx(1.0)
+
+
 def test_align_loss_hand_value() -> None:
     teacher = torch.tensor([[0.9, 0.1], [0.5, 0.2]])
     student = torch.tensor([[0.3, 0.8], [0.6, 0.0]])

@@ -9,13 +9,18 @@ edge score: the paper's e_ij (reference line 305) depends on the corner location
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from parksim.camera import pixel_grid
 
-__all__ = ["shape_confidence", "mix", "upsample", "top_edges", "edge_tubes", "edge_weights"]
+__all__ = ["shape_confidence", "mix", "upsample", "top_edges", "edge_tubes", "edge_weights", "TUBE_CUTOFF"]
+
+TUBE_CUTOFF = 5.0
+"""Edge tubes are evaluated within this many sigma of their segment (ParkSim: a cost bound, not the paper's)."""
 
 
 def shape_confidence(conf: Tensor, tau: float = 0.25, temperature: float = 0.5, gamma: float = 1.0) -> Tensor:
@@ -43,19 +48,29 @@ def top_edges(scores: Tensor, k: int) -> Tensor:
     return torch.stack([picked // max(n, 1), picked % max(n, 1)], dim=1)
 
 
-def edge_tubes(points: Tensor, pairs: Tensor, size: tuple[int, int], sigma: float = 1.5, samples: int = 32) -> Tensor:
+def edge_tubes(points: Tensor, pairs: Tensor, size: tuple[int, int], sigma: float = 1.5, samples: int = 32,
+               cutoff: float = TUBE_CUTOFF) -> Tensor:
     """Max over edges of e_ij(u, v) = max_t exp(-|(u, v) - l_ij(t)|^2 / 2 sigma^2), t sampled at ``samples`` points.
 
     ``points`` ``[N, 2]`` (u, v) pixels, ``pairs`` ``[E, 2]`` indices into them; returns ``[H, W]`` (``size``).
+    Each tube is evaluated in its segment's bounding box widened by ``cutoff`` sigma; pixels outside it keep 0
+    (exp(-cutoff^2 / 2) = 4e-6 at the default), so a tube costs its box rather than the whole BEV.
     """
     height, width = size
     out = points.new_zeros(height, width)
-    pixels = pixel_grid(width, height, points.dtype).reshape(-1, 1, 2)
     t = torch.linspace(0.0, 1.0, samples, dtype=points.dtype)[:, None]
+    reach = cutoff * sigma
     for i, j in pairs.tolist():
         line = (1.0 - t) * points[i] + t * points[j]
-        dist2 = ((pixels - line) ** 2).sum(-1).amin(1)
-        out = torch.maximum(out, torch.exp(-dist2 / (2.0 * sigma ** 2)).reshape(height, width))
+        u0, v0 = (max(0, math.floor(float(x) - reach)) for x in line.amin(0))
+        u1, v1 = (math.ceil(float(x) + reach) for x in line.amax(0))
+        u1, v1 = min(u1, width - 1), min(v1, height - 1)
+        if u0 > u1 or v0 > v1:
+            continue
+        pixels = pixel_grid(u1 - u0 + 1, v1 - v0 + 1, points.dtype) + points.new_tensor([u0, v0])
+        dist2 = ((pixels.reshape(-1, 1, 2) - line) ** 2).sum(-1).amin(1)
+        tube = torch.exp(-dist2 / (2.0 * sigma ** 2)).reshape(v1 - v0 + 1, u1 - u0 + 1)
+        out[v0:v1 + 1, u0:u1 + 1] = torch.maximum(out[v0:v1 + 1, u0:u1 + 1], tube)
     return out
 
 
