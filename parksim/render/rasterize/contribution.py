@@ -27,15 +27,15 @@ _HALF = np.float32(0.5)
 
 
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
-def _weight_row(state, i0, dx0, dy, a, b, c, o, t_min) -> tuple[np.float32, np.float32]:
-    """Composite one Gaussian over a tile row; returns (its largest weight there, pixels that stopped).
+def _weight_row(state, i0, dx0, dy, a, b, c, o, t_min, weights) -> np.float32:
+    """Composite one Gaussian over a tile row, writing its TILE weights; returns how many pixels stopped.
 
-    state rows: transmittance, alive flag.
+    state rows: transmittance, alive flag. The max over the row is taken by the caller: a reduction
+    inside this loop keeps LLVM from vectorising it (measured 4x slower).
     """
     p0 = -_HALF * c * dy * dy
     p1 = -b * dy
     p2 = -_HALF * a
-    best = _ZERO
     stopped = _ZERO
     for j in range(TILE):
         i = np.uint64(i0) + np.uint64(j)
@@ -45,29 +45,32 @@ def _weight_row(state, i0, dx0, dy, a, b, c, o, t_min) -> tuple[np.float32, np.f
         alive = state[1, i]
         w = alpha * t * alive
         stop = t * (_ONE - alpha) < t_min
-        best = max(best, w)
+        weights[j] = w
         state[0, i] = t if stop else t - w
         stopped += alive if stop else _ZERO
         state[1, i] = _ZERO if stop else alive
-    return best, stopped
+    return stopped
 
 
 @numba.njit(fastmath=True, error_model="numpy", cache=True)
-def _weights_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_min, state, row_live, best):
+def _weights_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_min, state, row_live, weights, best):
     """Composite one tile front to back, raising best[g] to each Gaussian's largest weight in it."""
     x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
     alive = _start_tile(state, row_live, x0, y0, x1, y1)
     for k in range(offsets[tile], offsets[tile + 1]):
         g = gauss_ids[k]
         p = packed[g]
+        top = best[g]
         for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
             if row_live[py - y0] < _HALF:
                 continue
-            w, stopped = _weight_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
-                                     p[2], p[3], p[4], p[5], t_min)
-            best[g] = max(best[g], w)
+            stopped = _weight_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
+                                  p[2], p[3], p[4], p[5], t_min, weights)
+            for j in range(TILE):
+                top = max(top, weights[j])
             row_live[py - y0] -= stopped
             alive -= stopped
+        best[g] = top
         if alive < _HALF:
             break
 
@@ -79,9 +82,10 @@ def _max_weights(offsets, gauss_ids, packed, tiles_x, tile_order, width, height,
     for worker in numba.prange(n_workers):
         state = np.empty((2, TILE * TILE), np.float32)
         row_live = np.empty(TILE, np.float32)
+        weights = np.empty(TILE, np.float32)
         for j in range(worker, tile_order.shape[0], n_workers):
             _weights_tile(tile_order[j], offsets, gauss_ids, packed, tiles_x, width, height, t_min, state,
-                          row_live, best[worker])
+                          row_live, weights, best[worker])
 
 
 def max_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, width: int, height: int,
