@@ -1,4 +1,4 @@
-"""``reconstruct``: validate inputs, train (fresh or resumed), then write the scene bundle and plots."""
+"""``reconstruct``: validate inputs, train (fresh, resumed, or on from a photometric run), then write the bundle."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from parksim.bundle import Bundle, save
 from parksim.fileio import atomic_write
 from parksim.data import DatasetReader
 
-from .checkpoint import checkpoint_path
+from .checkpoint import checkpoint_path, load_checkpoint
 from .config import TrainConfig, dump_config, load_config
 from .plots import plot_metrics
 from .trainer import METRICS_FILE, Trainer
@@ -32,14 +32,29 @@ def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool)
     return stored
 
 
+def _start_from(trainer: Trainer, photometric_run: Path) -> None:
+    """Put ``trainer`` at the end of the photometric phase of the run in ``photometric_run`` (its checkpoint)."""
+    if trainer.slot_step is None:
+        raise ValueError(f"starting from {photometric_run} needs a slot-aware phase: set slot_aware.iterations > 0 "
+                         "and slot_aware.detector")
+    trainer.start_from_photometric(load_checkpoint(checkpoint_path(photometric_run)), str(photometric_run))
+    trainer.init_note = f"{trainer.init_note}; photometric phase from {photometric_run}"
+    trainer.log(f"starting the slot-aware phase from {photometric_run} at iteration {trainer.step}")
+
+
 def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Path | None = None,
-                resume: bool = False, stop_after: int | None = None, log: Callable[[str], None] = print) -> Path:
+                resume: bool = False, stop_after: int | None = None, log: Callable[[str], None] = print,
+                start_from: str | Path | None = None) -> Path:
     """Train a scene from ``data_dir`` into ``out_dir``; returns ``out_dir`` once the bundle is written.
 
-    Every input (dataset, config, checkpoint) is checked before anything is written. ``stop_after`` ends
-    the run early (as a kill would, after a checkpoint) and writes no bundle.
+    Every input (dataset, config, checkpoint, detector) is checked before anything is written. ``stop_after``
+    ends the run early (as a kill would, after a checkpoint) and writes no bundle. ``start_from`` names a
+    finished photometric run (its folder, checkpoint kept) whose state this run continues from: only the
+    slot-aware iterations are trained, so variants share one photometric phase.
     """
     out_dir = Path(out_dir)
+    if resume and start_from is not None:
+        raise ValueError("--resume continues this run; --from starts a new one: give one of them")
     reader = DatasetReader(data_dir)
     config = _resolve_config(out_dir, config_path, resume)
     if resume:
@@ -47,7 +62,10 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         trainer.truncate_metrics()
     else:
         trainer = Trainer(reader, config, out_dir, log)
-        trainer.initialise()
+        if start_from is not None:
+            _start_from(trainer, Path(start_from))
+        else:
+            trainer.initialise()
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / METRICS_FILE).unlink(missing_ok=True)
         atomic_write(out_dir / CONFIG_FILE, lambda p: p.write_text(dump_config(config)))

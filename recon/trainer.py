@@ -26,7 +26,6 @@ from parksim.render import render
 
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .config import TrainConfig, parse_config
-from .detectors import load_detector
 from .evaluate import evaluate_views
 from .init import initial_scene
 from .losses import photometric_loss
@@ -90,7 +89,7 @@ class Trainer:
         if sa.iterations == 0:
             return None
         if detector is None and sa.detector is not None:
-            detector = load_detector(sa.detector)
+            detector = sa.detector.load()
         if detector is None and spec_of(sa.variant).uses_detector:
             self.log("slot-aware phase off: slot_aware.detector is not set")
             return None
@@ -116,9 +115,27 @@ class Trainer:
 
     def resume(self, state: dict[str, Any]) -> None:
         """Restore a checkpoint's parameters, optimizer moments, strategy, response, RNG and position."""
-        saved = parse_config(state["config"], "checkpoint config")
-        if saved != self.cfg:
+        if parse_config(state["config"], "checkpoint config") != self.cfg:
             raise ValueError("the checkpoint was written with a different config; resume with the run's config.yaml")
+        self._restore(state)
+
+    def start_from_photometric(self, state: dict[str, Any], source: str) -> None:
+        """Continue a finished photometric run (its checkpoint ``state``) into this run's slot-aware phase.
+
+        Lets several slot-aware variants share one photometric phase: everything that shapes phase 1
+        (init, learning rates, photometric, densify) must equal this run's config, and phase 1 must be complete.
+        """
+        saved = parse_config(state["config"], f"{source} checkpoint config")
+        differ = [k for k in ("init", "lr", "photometric", "densify") if getattr(saved, k) != getattr(self.cfg, k)]
+        if differ:
+            raise ValueError(f"{source}: its photometric phase was trained with other {', '.join(differ)} settings "
+                             "than this config's")
+        if int(state["iteration"]) != self.cfg.photometric.iterations:
+            raise ValueError(f"{source}: stopped at iteration {state['iteration']}, not at the end of the "
+                             f"photometric phase ({self.cfg.photometric.iterations})")
+        self._restore(state)
+
+    def _restore(self, state: dict[str, Any]) -> None:
         self.params = GaussianParams(state["params"], self._lrs())
         self.params.optimizer.load_state_dict(state["optimizer"])
         self.response.load_state_dict(state["response"])

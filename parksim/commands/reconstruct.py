@@ -14,12 +14,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "(1-0.2) L1 + 0.2 D-SSIM over each camera's valid pixels, Adam with the 3DGS schedule, "
                     "MCMC densification) and write a scene bundle to OUTPUT: gaussians.ply, rig.json, map.json, "
                     "bundle.json, config.yaml, metrics.jsonl/png. Checkpoints go to OUTPUT/checkpoints/; "
-                    "--resume continues a killed run exactly.",
+                    "--resume continues a killed run exactly; --from RUN continues a finished photometric run's "
+                    "checkpoint into this config's slot-aware phase (phase 1 shared by several variants).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("data", type=Path, help="dataset directory (parksim synth layout)")
     p.add_argument("-o", "--output", type=Path, required=True, help="scene bundle folder, e.g. scenes/NAME")
     p.add_argument("--config", type=Path, help="training config YAML (default: the paper's, configs/parkgaussian.yaml)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUTPUT from its last checkpoint")
+    p.add_argument("--from", dest="start_from", type=Path, metavar="RUN",
+                   help="start from the finished photometric run in RUN (its checkpoints/last.pt): train only the "
+                        "slot-aware phase; RUN must have used this config's init, lr, photometric and densify")
     return p
 
 
@@ -27,5 +31,5 @@ def run(args: argparse.Namespace) -> int:
     """Train (or resume) and write the bundle."""
     from recon.reconstruct import reconstruct
 
-    reconstruct(args.data, args.output, args.config, resume=args.resume)
+    reconstruct(args.data, args.output, args.config, resume=args.resume, start_from=args.start_from)
     return 0

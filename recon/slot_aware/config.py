@@ -6,11 +6,46 @@ Values not given by the paper (marked "ParkSim" below): ``lambda_edge``, the ali
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
 
 from .variants import Variant
 
-__all__ = ["SlotAwareConfig"]
+__all__ = ["SlotAwareConfig", "DetectorRef", "DetectorError"]
+
+
+class DetectorError(ValueError):
+    """A configured detector checkpoint is missing or is not of the configured kind; the message names both."""
+
+
+class DetectorRef(BaseModel):
+    """A trained slot detector: its architecture and its checkpoint (``model.pt`` or the folder holding it)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["dmpr", "gcn"]
+    path: str
+
+    def checkpoint(self) -> Path:
+        """The ``model.pt`` this reference names; a clear error when it is not there."""
+        path = Path(self.path)
+        path = path / "model.pt" if path.is_dir() else path
+        if not path.is_file():
+            raise DetectorError(f"detector {self.kind}: {path}: checkpoint not found "
+                                f"(train one with `parksim detector train {self.kind} ...`)")
+        return path
+
+    def load(self) -> nn.Module:
+        """The detector in eval mode; its checkpoint must hold a detector of ``kind``."""
+        from ..detectors import load_detector
+
+        model = load_detector(self.checkpoint())
+        if model.kind != self.kind:
+            raise DetectorError(f"detector {self.kind}: {self.path} holds a {model.kind!r} detector")
+        return model
 
 
 class SlotAwareConfig(BaseModel):
@@ -34,4 +69,5 @@ class SlotAwareConfig(BaseModel):
     align_top_k: int = Field(16, gt=0, description="ParkSim: K of the teacher's top-K region (grid cells)")
     align_temperature: float = Field(1.0, gt=0, description="ParkSim: softmax temperature of pi^s, pi^t")
     variant: Variant = Variant.FULL
-    detector: str | None = Field(None, description="frozen detector checkpoint (model.pt or its folder)")
+    detector: DetectorRef | None = Field(None, description="the frozen detector: {kind: dmpr|gcn, path: model.pt "
+                                         "or its folder}")
