@@ -9,46 +9,15 @@ Red: detections (dot, direction arrow, entrance line). Left panel DMPR-PS-style,
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from recon.detectors import Detections, SlotLabels, load_detector
+from recon.bev_draw import WHITE, draw_detections, draw_labels
+from recon.detectors import load_detector
 from recon.detectors.dataset import BEVItem, iter_items
-from recon.detectors.evaluate import MatchOptions
-
-GREEN, RED, WHITE = (40, 220, 40), (255, 50, 50), (255, 255, 255)
-
-
-def _pt(x: float, y: float) -> tuple[int, int]:
-    return int(round(x)), int(round(y))
-
-
-def draw_labels(img: np.ndarray, labels: SlotLabels) -> None:
-    """Labelled points (tolerance circles, direction) and slot entrances in green."""
-    radius = int(round(MatchOptions().distance(labels.m_per_px)))
-    for x, y, d, _ in labels.marks:
-        cv2.circle(img, _pt(x, y), radius, GREEN, 2, cv2.LINE_AA)
-        cv2.line(img, _pt(x, y), _pt(x + 30 * math.cos(d), y + 30 * math.sin(d)), GREEN, 2, cv2.LINE_AA)
-    for p1, p2 in labels.slots:
-        a, b = labels.marks[p1], labels.marks[p2]
-        cv2.line(img, _pt(a[0], a[1]), _pt(b[0], b[1]), GREEN, 2, cv2.LINE_AA)
-
-
-def draw_detections(img: np.ndarray, det: Detections) -> None:
-    """Detected points (dot + direction arrow + L/T) and slot entrances in red."""
-    for p in det.points:
-        cv2.circle(img, _pt(p.x, p.y), 4, RED, -1, cv2.LINE_AA)
-        cv2.arrowedLine(img, _pt(p.x, p.y), _pt(p.x + 45 * math.cos(p.direction), p.y + 45 * math.sin(p.direction)),
-                        RED, 2, cv2.LINE_AA, tipLength=0.3)
-        cv2.putText(img, p.shape, _pt(p.x + 8, p.y - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.6, RED, 2, cv2.LINE_AA)
-    for s in det.slots:
-        a, b = det.points[s.p1], det.points[s.p2]
-        cv2.line(img, _pt(a.x, a.y), _pt(b.x, b.y), RED, 1, cv2.LINE_AA)
-
 
 def panel(item: BEVItem, model: torch.nn.Module, title: str) -> np.ndarray:
     """One annotated BEV."""

@@ -1,4 +1,5 @@
-"""``parksim eval``: PSNR/SSIM (and LPIPS when weights are given) of a scene bundle on a dataset's test frames."""
+"""``parksim eval``: PSNR/SSIM (and LPIPS when weights are given) of scene bundles on a dataset's test frames,
+and the paper's tables (slot detection on rendered vs ground-truth BEVs, ablation) when detectors are given."""
 
 from __future__ import annotations
 
@@ -6,18 +7,41 @@ import argparse
 from pathlib import Path
 
 
+def _run_arg(text: str) -> tuple[Path, str | None]:
+    """``DIR`` or ``LABEL=DIR``."""
+    label, sep, path = text.rpartition("=")
+    return (Path(path), label) if sep and label else (Path(text), None)
+
+
+def _detector_arg(text: str) -> tuple[str, Path]:
+    """``KIND=PATH`` with KIND dmpr or gcn."""
+    kind, sep, path = text.partition("=")
+    if not sep or kind not in ("dmpr", "gcn") or not path:
+        raise argparse.ArgumentTypeError(f"expected dmpr=PATH or gcn=PATH, got {text!r}")
+    return kind, Path(path)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``eval`` (cheap: no heavy imports)."""
     p = sub.add_parser(
-        "eval", help="score a trained scene on the test frames (PSNR, SSIM, slot regions, optional LPIPS)",
-        description="Render every test frame (split.json; every 10th frame) from all cameras, score PSNR and SSIM "
-                    "over each camera's valid pixels and over slot regions (floor within 0.5 m of a slot line), "
-                    "and write eval.json, eval.md and side-by-side PNGs (render | ground truth) to OUTPUT. "
-                    "LPIPS is computed only from weights given by path; otherwise the report says so.",
+        "eval", help="score trained scenes on the test frames (PSNR, SSIM, slot regions, BEV slot detection)",
+        description="Render every test frame (split.json; every 10th frame) from all cameras and score PSNR and "
+                    "SSIM over each camera's valid pixels and over slot regions (floor within 0.5 m of a slot line). "
+                    "One SCENE without --detector: eval.json, eval.md and side-by-side PNGs (render | ground truth) "
+                    "in OUTPUT; LPIPS only from weights given by path. With --detector (or several SCENEs): the "
+                    "paper's tables in OUTPUT/tables.md (+ tables.json): novel-view PSNR/SSIM, each detector's "
+                    "marking-point and slot precision/recall on the ground-truth BEVs (IPM of the dataset's "
+                    "images: the GT- rows) and on each scene's rendered BEVs, the ablation table, and "
+                    "panel_<detector>.png (ground-truth vs rendered BEVs; labels green, detections red).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("scene", type=Path, help="scene bundle folder (parksim reconstruct output)")
-    p.add_argument("data", type=Path, help="dataset directory with the test frames")
-    p.add_argument("-o", "--output", type=Path, help="report folder (default: SCENE/eval)")
+    p.add_argument("scenes", nargs="+", type=_run_arg, metavar="SCENE",
+                   help="scene bundle folder (parksim reconstruct output), or LABEL=FOLDER to name its table row")
+    p.add_argument("data", type=Path, help="dataset directory with the test frames and slot labels")
+    p.add_argument("-o", "--output", type=Path, help="report folder (default: SCENE/eval; required for several)")
+    p.add_argument("--detector", action="append", type=_detector_arg, default=[], metavar="KIND=PATH",
+                   help="trained detector (dmpr=detectors/dmpr, gcn=detectors/gcn/model.pt); repeat for both")
+    p.add_argument("--threshold", type=float, default=0.5, help="detectors' marking-point confidence threshold")
+    p.add_argument("--panel-frames", type=int, default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
     p.add_argument("--lpips-backbone", type=Path, help="torchvision AlexNet/VGG16 ImageNet state dict (.pth)")
@@ -25,8 +49,32 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
+def _tables(args: argparse.Namespace, out: Path) -> int:
+    from recon.detectors import DecodeOptions
+    from recon.paper_eval import evaluate_runs
+    from recon.slot_aware import DetectorRef
+
+    if args.lpips_backbone is not None:
+        raise ValueError("LPIPS is computed for a single SCENE without --detector")
+    if len({kind for kind, _ in args.detector}) != len(args.detector):
+        raise ValueError("give each detector kind once")
+    if not 0.0 < args.threshold < 1.0:
+        raise ValueError(f"--threshold must be in (0, 1), got {args.threshold}")
+    detectors = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in args.detector}
+    evaluate_runs(args.scenes, args.data, detectors, out, args.backend, args.panel_frames,
+                  DecodeOptions(threshold=args.threshold))
+    print((out / "tables.md").read_text(), end="")
+    print(f"report: {out}/tables.json, panels: " + (", ".join(f"{out}/panel_{k}.png" for k in detectors) or "none"))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
-    """Evaluate and print the table."""
+    """Evaluate and print the table(s)."""
+    if len(args.scenes) > 1 and args.output is None:
+        raise ValueError("several SCENEs need -o/--output")
+    out = args.output or args.scenes[0][0] / "eval"
+    if args.detector or len(args.scenes) > 1:
+        return _tables(args, out)
     from recon.evaluate import evaluate_bundle
 
     lpips = None
@@ -36,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
         from recon.lpips import LPIPS
 
         lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights)
-    out = args.output or args.scene / "eval"
-    evaluate_bundle(args.scene, args.data, out, args.backend, lpips)
+    scene = args.scenes[0][0]
+    evaluate_bundle(scene, args.data, out, args.backend, lpips)
     print((out / "eval.md").read_text(), end="")
     print(f"report: {out}/eval.json, side-by-sides: {out}/renders/")
     return 0
