@@ -13,8 +13,8 @@ def _run_arg(text: str) -> tuple[Path, str | None]:
     return (Path(path), label) if sep and label else (Path(text), None)
 
 
-def _detector_arg(text: str) -> tuple[str, Path]:
-    """``KIND=PATH`` with KIND dmpr or gcn."""
+def parse_detector(text: str) -> tuple[str, Path]:
+    """``KIND=PATH`` with KIND dmpr or gcn (an argparse type; the benchmarks parse detectors with it too)."""
     kind, sep, path = text.partition("=")
     if not sep or kind not in ("dmpr", "gcn") or not path:
         raise argparse.ArgumentTypeError(f"expected dmpr=PATH or gcn=PATH, got {text!r}")
@@ -38,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="scene bundle folder (parksim reconstruct output), or LABEL=FOLDER to name its table row")
     p.add_argument("data", type=Path, help="dataset directory with the test frames and slot labels")
     p.add_argument("-o", "--output", type=Path, help="report folder (default: SCENE/eval; required for several)")
-    p.add_argument("--detector", action="append", type=_detector_arg, default=[], metavar="KIND=PATH",
+    p.add_argument("--detector", action="append", type=parse_detector, default=[], metavar="KIND=PATH",
                    help="trained detector (dmpr=detectors/dmpr, gcn=detectors/gcn/model.pt); repeat for both")
     p.add_argument("--threshold", type=float, default=0.5, help="detectors' marking-point confidence threshold")
     p.add_argument("--panel-frames", type=int, default=3, help="test frames shown in each detection panel")

@@ -1,0 +1,168 @@
+"""The paper's slot-aware experiments on CPU: one shared photometric phase, each variant's slot-aware phase, tables.
+
+For each scene: train the photometric bundle with ``configs/cpu_fast.yaml`` (or reuse it), start every run's
+slot-aware phase from it (``configs/cpu_slot_aware.yaml`` with the run's variant and guide detector), then
+``recon.paper_eval`` scores all of them and this writes ``benchmarks/RESULTS_slot_aware.md``: the schedule,
+timings, the paper-style tables and the issue's targets with the numbers that decide them.
+
+Runs: the full variant guided by each detector, the ablation variants guided by ``--guide``, and a control
+("Photometric only, continued": the same slot-aware iterations with every slot term off, i.e. L_rgb on all four
+cameras of a frame), so that a variant is also compared with what the extra iterations alone give.
+
+    python benchmarks/bench_slot_aware.py --scene data/scene1_320 scenes/scene1_320 \\
+        --detector dmpr=detectors/dmpr --detector gcn=detectors/gcn --iterations 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from parksim.commands.eval import parse_detector
+from recon.config import TrainConfig, dump_config, load_config
+from recon.detectors import DecodeOptions
+from recon.paper_eval import VARIANT_TITLES, evaluate_runs
+from recon.paper_tables import DETECTOR_TITLES, tables_markdown
+from recon.reconstruct import reconstruct
+from recon.slot_aware import DetectorRef, Variant
+
+ROOT = Path(__file__).resolve().parents[1]
+ABLATION = (Variant.DIRECT_IPM, Variant.FEATURE_ONLY, Variant.TEACHER_ONLY, Variant.STUDENT_ONLY)
+CONTROL = "Photometric only, continued"
+TOLERANCE = 0.05
+
+
+@dataclass(frozen=True)
+class Run:
+    """One slot-aware run: folder name, table label, variant, guide detector kind (None: none), slot terms on."""
+
+    name: str
+    label: str | None
+    variant: Variant
+    guide: str | None
+    slot_terms: bool = True
+
+
+def plan(detectors: list[str], guide: str, variants: list[Variant], control: bool) -> list[Run]:
+    """Full variant per detector first (the headline), then the control, then the ablation variants."""
+    runs = [Run(f"full_{kind}", None, Variant.FULL, kind) for kind in detectors]
+    if control:
+        runs.append(Run("photometric_continued", CONTROL, Variant.DIRECT_IPM, None, slot_terms=False))
+    runs += [Run(f"{v.value}_{guide}", None, v, None if v == Variant.DIRECT_IPM else guide) for v in variants]
+    return runs
+
+
+def train_run(run: Run, data: Path, photometric: Path, folder: Path, base: TrainConfig, iterations: int,
+              detectors: dict[str, Path]) -> None:
+    """Write the run's config next to it and train its slot-aware phase from the photometric run (kept if done)."""
+    if (folder / "bundle.json").is_file():
+        print(f"reusing {folder}")
+        return
+    update = {"iterations": iterations, "variant": run.variant,
+              "detector": DetectorRef(kind=run.guide, path=str(detectors[run.guide])) if run.guide else None}
+    if not run.slot_terms:
+        update.update(lambda_align=0.0, lambda_ipm=0.0, lambda_cam=0.0)
+    config = base.model_copy(update={"slot_aware": base.slot_aware.model_copy(update=update)})
+    path = folder.parent / "configs" / f"{run.name}.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(dump_config(config))
+    start = time.perf_counter()
+    reconstruct(data, folder, path, start_from=photometric)
+    print(f"{run.name}: {time.perf_counter() - start:.0f} s")
+
+
+def _slot_seconds(run_dir: Path, photometric: Path) -> float:
+    """Training seconds of the slot-aware phase alone (the bundle's total minus the shared photometric phase)."""
+    total = json.loads((run_dir / "bundle.json").read_text())["train_seconds"]
+    return total - json.loads((photometric / "bundle.json").read_text())["train_seconds"]
+
+
+def _by_label(result: dict, label: str) -> dict | None:
+    return next((r for r in result["runs"] if r["label"] == label), None)
+
+
+def targets(result: dict) -> list[str]:
+    """The issue's targets for each full run, with the numbers that decide them."""
+    lines = ["| scene | run | target | value | reference | met |", "| --- | --- | --- | --- | --- | --- |"]
+    photo = _by_label(result, "Photometric only")
+    for run in (r for r in result["runs"] if r["variant"] == "full"):
+        kind = run["detector"]
+        gt, mine, base = result["gt"][kind]["slots"], run["detection"][kind]["slots"], photo["detection"][kind]["slots"]
+        title = DETECTOR_TITLES[kind]
+        checks = [(f"{title} slot recall on rendered BEVs > photometric only", mine["recall"], base["recall"],
+                   mine["recall"] > base["recall"]),
+                  ("slot-region PSNR > photometric only", run["slot_psnr"], photo["slot_psnr"],
+                   run["slot_psnr"] > photo["slot_psnr"]),
+                  (f"{title} slot precision within {TOLERANCE} of GT-BEV", mine["precision"], gt["precision"],
+                   abs(mine["precision"] - gt["precision"]) <= TOLERANCE),
+                  (f"{title} slot recall within {TOLERANCE} of GT-BEV", mine["recall"], gt["recall"],
+                   abs(mine["recall"] - gt["recall"]) <= TOLERANCE)]
+        lines += [f"| {result['scene']} | {run['label']} | {what} | {value:.3f} | {ref:.3f} | {'yes' if ok else 'no'} |"
+                  for what, value, ref, ok in checks]
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", nargs=2, action="append", type=Path, required=True, metavar=("DATA", "PHOTOMETRIC"),
+                    help="dataset and its photometric run (trained here with cpu_fast.yaml when missing)")
+    ap.add_argument("--detector", action="append", type=parse_detector, required=True, metavar="KIND=PATH")
+    ap.add_argument("--guide", choices=["dmpr", "gcn"], default="gcn", help="detector guiding the ablation variants")
+    ap.add_argument("--variants", nargs="*", type=Variant, default=list(ABLATION), help="ablation variants to run")
+    ap.add_argument("--no-control", action="store_true", help="skip the 'photometric only, continued' control")
+    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "cpu_slot_aware.yaml",
+                    help="slot-aware config each run starts from (variant, detector, iterations set per run)")
+    ap.add_argument("--photometric-config", type=Path, default=ROOT / "configs" / "cpu_fast.yaml",
+                    help="config of a photometric run trained here")
+    ap.add_argument("--iterations", type=int, help="slot-aware iterations per run (default: --config's)")
+    ap.add_argument("--runs", type=Path, default=Path("scenes/slot_aware"), help="where the runs go (per scene)")
+    ap.add_argument("--threshold", type=float, default=0.5, help="detectors' operating threshold")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "RESULTS_slot_aware.md")
+    args = ap.parse_args(argv)
+    base = load_config(args.config)
+    iterations = args.iterations or base.slot_aware.iterations
+    detectors = dict(args.detector)
+    models = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in detectors.items()}
+    runs = plan(list(detectors), args.guide, args.variants, not args.no_control)
+    load_before, started = os.getloadavg(), datetime.datetime.now(datetime.timezone.utc)
+    results, timings = [], []
+    for data, photometric in args.scene:
+        if not (photometric / "bundle.json").is_file():
+            reconstruct(data, photometric, args.photometric_config)
+        root = args.runs / data.name
+        for run in runs:
+            train_run(run, data, photometric, root / run.name, base, iterations, detectors)
+            timings.append(f"| {data.name} | {run.name} | {_slot_seconds(root / run.name, photometric):.0f} |")
+        start = time.perf_counter()
+        entries = [(photometric, "Photometric only")] + [(root / r.name, r.label) for r in runs]
+        results.append(evaluate_runs(entries, data, models, root / "eval", decode=DecodeOptions(threshold=args.threshold)))
+        timings.append(f"| {data.name} | evaluation of {len(entries)} bundles | {time.perf_counter() - start:.0f} |")
+    load_after = os.getloadavg()
+    text = "\n".join([
+        "# Slot-aware phase: the paper's tables on CPU", "",
+        f"`python benchmarks/bench_slot_aware.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
+        f"Started {started.isoformat(timespec='minutes')}; load average {load_before[0]:.1f} at the start and "
+        f"{load_after[0]:.1f} at the end (2 shared cores); torch {torch.__version__}, {torch.get_num_threads()} threads.",
+        f"Schedule: photometric phase `{args.photometric_config.name}` (shared by all runs), then {iterations} "
+        f"slot-aware iterations per run (`{args.config.name}`); detectors: "
+        + ", ".join(f"{DETECTOR_TITLES[k]} `{p}`" for k, p in detectors.items())
+        + f"; operating threshold {args.threshold}; ablation guided by {DETECTOR_TITLES[args.guide]}.", "",
+        "| scene | run | slot-aware training (s, wall) |", "| --- | --- | --- |", *timings, "",
+        tables_markdown(results).rstrip(), "",
+        "### Targets of the issue", "", *(line for r in results for line in targets(r)), "",
+        "Variant names: " + "; ".join(f"{v.value} = {t}" for v, t in VARIANT_TITLES.items()) + ".", ""])
+    args.out.write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
