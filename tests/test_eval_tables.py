@@ -27,15 +27,6 @@ PHOTOMETRIC, SLOT_AWARE = 4, 2
 THRESHOLD = 0.3  # an operating point at which the few-step detector below detects something on these BEVs
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """Tiny tensors: one intra-op thread is faster than two fighting over a loaded machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _write_config(path: Path, **sections) -> Path:
     base = load_config(ROOT / "configs" / "tiny.yaml")
     config = base.model_copy(update={"photometric": base.photometric.model_copy(update={"iterations": PHOTOMETRIC}),
