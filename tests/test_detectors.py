@@ -12,7 +12,7 @@ import torch
 
 from recon.detectors import (DecodeOptions, Detections, DMPRDetector, GCNDetector, LabelError, MarkingPoint,
                              PointMaps, Slot, SlotLabels, load_detector, read_ps2_labels)
-from recon.detectors.dataset import hflip, rotate
+from recon.detectors.dataset import hflip, photometric, rotate
 from recon.detectors.decode import decode_points, infer_slots
 from recon.detectors.evaluate import MatchOptions, average_precision, match_points, match_slots, summarize
 from recon.detectors.targets import point_targets
@@ -166,6 +166,15 @@ def test_rotation_and_mirror_move_labels_with_the_image():
     assert flipped[20, 30, 0] == 255
 
 
+def test_photometric_augmentation_is_seeded_and_in_range():
+    image = np.full((32, 32, 3), 128, np.uint8)
+    image[8:16] = 250
+    a, b = (photometric(image, np.random.default_rng(1)) for _ in range(2))
+    assert a.dtype == np.float32 and a.shape == image.shape and np.array_equal(a, b)
+    assert a.min() >= 0.0 and a.max() <= 1.0 and np.abs(a - image / 255.0).mean() > 0.01
+    assert a[8:16].mean() > a[16:].mean() + 0.2  # the bright band stays bright
+
+
 def _write(tmp_path, data) -> str:
     path = tmp_path / "img.json"
     path.write_text(data if isinstance(data, str) else json.dumps(data))
@@ -230,7 +239,7 @@ def test_ps2_folder_feeds_training_batches(tmp_path):
     (tmp_path / "img.json").rename(tmp_path / "a.json")
     item, = iter_items(tmp_path)
     assert item.image.shape == (600, 600, 3) and item.labels.slots.tolist() == [[0, 1]]
-    batch = TrainingSet([tmp_path], 64).batch(2, np.random.default_rng(0), torch.Generator().manual_seed(0), 2)
+    batch = TrainingSet([tmp_path], 64).batch(2, np.random.default_rng(0), 2)
     assert batch["images"].shape == (2, 3, 64, 64) and batch["points"].shape == (2, 6, 2, 2)
     (tmp_path / "a.png").unlink()
     with pytest.raises(FileNotFoundError, match="no image a.jpg or .png"):

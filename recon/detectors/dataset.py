@@ -116,19 +116,22 @@ def hflip(image: np.ndarray, labels: SlotLabels) -> tuple[np.ndarray, SlotLabels
     return np.ascontiguousarray(image[:, ::-1]), flipped
 
 
-def photometric(images: Tensor, gen: torch.Generator) -> Tensor:
-    """Random brightness, contrast, per-channel gain, gamma and sensor noise on a ``[B, 3, H, W]`` batch in [0, 1]."""
-    b = images.shape[0]
+def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Random gamma, contrast, brightness, per-channel gain and sensor noise on a uint8 RGB image -> float32 in [0, 1].
 
-    def u(lo: float, hi: float, *shape: int) -> Tensor:
-        return lo + (hi - lo) * torch.rand(b, *shape, 1, 1, generator=gen)
-
-    x = images.clamp(1e-4, 1.0) ** u(0.7, 1.4, 1)
-    mean = x.mean(dim=(1, 2, 3), keepdim=True)
-    x = (x - mean) * u(0.6, 1.4, 1) + mean * u(0.6, 1.4, 1)
-    x = x * u(0.85, 1.15, 3)
-    x = x + torch.randn(x.shape, generator=gen) * u(0.0, 0.04, 1)
-    return x.clamp(0.0, 1.0)
+    The colour change is one 256-entry table per channel (``cv2.LUT``) and the noise comes from OpenCV's generator
+    (seeded from ``rng``): several times cheaper than float tensor arithmetic, which dominated a training step.
+    """
+    gamma, contrast, brightness = rng.uniform(0.7, 1.4), rng.uniform(0.6, 1.4), rng.uniform(0.6, 1.4)
+    gain, sigma = rng.uniform(0.85, 1.15, 3), rng.uniform(0.0, 0.04)
+    levels = np.maximum(np.arange(256) / 255.0, 1e-4) ** gamma
+    mean = np.bincount(image.ravel(), minlength=256) @ levels / image.size
+    table = (((levels - mean) * contrast + mean * brightness)[:, None] * gain).astype(np.float32)
+    out = cv2.LUT(np.ascontiguousarray(image), table.reshape(256, 1, 3))
+    noise = np.empty_like(out)
+    cv2.setRNGSeed(int(rng.integers(2**31)))
+    cv2.randn(noise, 0.0, float(sigma))
+    return np.clip(out + noise, 0.0, 1.0)
 
 
 class TrainingSet:
@@ -153,21 +156,18 @@ class TrainingSet:
             image, labels = hflip(image, labels)
         return image, labels
 
-    def batch(self, batch_size: int, rng: np.random.Generator, gen: torch.Generator, grid: int,
-              augment: bool = True) -> dict[str, Tensor]:
+    def batch(self, batch_size: int, rng: np.random.Generator, grid: int, augment: bool = True) -> dict[str, Tensor]:
         """Images ``[B, 3, S, S]``, point targets ``[B, 6, G, G]``, graph nodes/mask/edges (GCN)."""
         images, points, nodes, masks, edges = [], [], [], [], []
         for index in rng.integers(0, len(self.items), batch_size):
             image, labels = self.sample(int(index), rng, augment)
-            images.append(torch.from_numpy(image).permute(2, 0, 1).float() / 255.0)
+            pixels = photometric(image, rng) if augment else image.astype(np.float32) / 255.0
+            images.append(torch.from_numpy(pixels).permute(2, 0, 1))
             points.append(point_targets(labels.marks, self.size, grid))
             n, m, e = graph_targets(labels.marks, labels.slots, self.size, self.max_nodes, 1.0, rng)
             nodes.append(n)
             masks.append(m)
             edges.append(e)
-        x = torch.stack(images)
-        if augment:
-            x = photometric(x, gen)
-        return {"images": x, "points": torch.stack(points), "nodes": torch.stack(nodes), "mask": torch.stack(masks),
-                "edges": torch.stack(edges)}
+        return {"images": torch.stack(images), "points": torch.stack(points), "nodes": torch.stack(nodes),
+                "mask": torch.stack(masks), "edges": torch.stack(edges)}
 

@@ -112,7 +112,6 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
     torch.set_num_threads(opts.threads)
     torch.manual_seed(opts.seed)
     rng = np.random.default_rng(opts.seed)
-    gen = torch.Generator().manual_seed(opts.seed)
     model = build(opts)
     if opts.init:
         init_from(model, opts.init)
@@ -126,7 +125,7 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
     model.train()
     bar = tqdm(range(1, opts.steps + 1), desc=f"train {opts.arch}", unit="step", disable=not progress)
     for step in bar:
-        batch = data.batch(opts.batch_size, rng, gen, grid)
+        batch = data.batch(opts.batch_size, rng, grid)
         maps, extras = model.run(batch["images"])
         losses = {"points": point_loss(maps, batch["points"])}
         if isinstance(model, GCNDetector):
