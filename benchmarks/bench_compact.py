@@ -7,7 +7,10 @@ uncompacted bundle in the same process (median over repeats after a warm-up); PS
 (each test view through the bundle's camera response, over the camera's scene mask) against ground truth.
 
     .venv/bin/python benchmarks/bench_compact.py --bundle scenes/scene1_320 --dataset data/scene1_320 \
-        --budgets 1.0,0.5,0.35,0.25 --out benchmarks/RESULTS_compact.md
+        --out benchmarks/RESULTS_compact.md
+
+A variant is ``BUDGET[:CELL_BUDGET][@SH_TOLERANCE]``: the ``--budget`` kept in the scene, with a visibility
+grid serving ``--cell-budget`` per cell when given (none otherwise), SH tolerance ``--sh-tolerance`` unless given.
 """
 
 from __future__ import annotations
@@ -89,11 +92,22 @@ def table(variants: list[Variant], full: Variant) -> list[str]:
     return lines
 
 
+def parse_variant(spec: str, base: CompactOptions) -> tuple[str, CompactOptions]:
+    """``BUDGET[:CELL_BUDGET][@SH_TOLERANCE]`` -> (row name, options)."""
+    head, _, sh = spec.partition("@")
+    budget, _, cell = head.partition(":")
+    opts = dataclasses.replace(base, budget=float(budget), cell_budget=float(cell or 1.0), visibility=bool(cell),
+                               sh_tolerance=float(sh) if sh else base.sh_tolerance)
+    name = f"budget {opts.budget:g}" + (f", cell budget {opts.cell_budget:g}" if cell else ", no visibility")
+    return name + (f", SH tolerance {opts.sh_tolerance:g}" if sh else ""), opts
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bundle", type=Path, required=True)
     parser.add_argument("--dataset", type=Path, required=True)
-    parser.add_argument("--budgets", default="1.0,0.5,0.35,0.25")
+    parser.add_argument("--variants", default="1@0,1,0.5,0.35,0.25,1:1,1:0.5,1:0.35,1:0.25,0.5:0.35",
+                        help="comma-separated BUDGET[:CELL_BUDGET][@SH_TOLERANCE]")
     parser.add_argument("--cell", type=float, default=4.0)
     parser.add_argument("--per-cell", type=int, default=16)
     parser.add_argument("--sh-tolerance", type=float, default=0.01)
@@ -110,11 +124,9 @@ def main() -> None:
     measure_s, measure_cpu = time.perf_counter() - t0, time.process_time() - cpu0
 
     variants = [Variant("full (reference)", LocalSim(full_bundle, "full"), None)]
-    for budget in (float(b) for b in args.budgets.split(",")):
-        for vis in (False, True):
-            opts = dataclasses.replace(base, budget=budget, visibility=vis)
-            name = f"budget {budget:g}" + (" + visibility" if vis else "")
-            variants.append(Variant(name, LocalSim(reduce_bundle(full_bundle, grid, weights, opts), name), opts))
+    for spec in args.variants.split(","):
+        name, opts = parse_variant(spec, base)
+        variants.append(Variant(name, LocalSim(reduce_bundle(full_bundle, grid, weights, opts), name), opts))
     for v in variants:
         v.psnr = served_psnr(v.sim, reader)
         print(f"{v.name}: {len(v.sim.bundle.scene)} Gaussians, test PSNR {v.psnr:.2f} dB", flush=True)
@@ -128,7 +140,7 @@ def main() -> None:
     text = [
         "# Scene compaction (`parksim compact`)", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
-        f"--budgets {args.budgets} --cell {args.cell:g} --per-cell {args.per_cell} --sh-tolerance {args.sh_tolerance:g} "
+        f"--variants {args.variants} --cell {args.cell:g} --per-cell {args.per_cell} --sh-tolerance {args.sh_tolerance:g} "
         f"--repeats {args.repeats}`", "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
         f"{numba.get_num_threads()}, torch {torch.__version__}; started {started:%Y-%m-%dT%H:%M}Z; load average "

@@ -60,8 +60,8 @@ class VisibilityGrid:
 
     def save(self, path: str | Path) -> None:
         """Write an uncompressed ``.npz`` (``path`` must end in .npz)."""
-        np.savez(path, origin=np.array([self.x0, self.y0]), cell=np.array(self.cell), shape=np.array([self.nx, self.ny]),
-                 offsets=self.offsets, indices=self.indices, measured=self.measured)
+        np.savez(path, origin=np.array([self.x0, self.y0]), cell=np.array(self.cell),
+                 shape=np.array([self.nx, self.ny]), offsets=self.offsets, indices=self.indices, measured=self.measured)
 
     @classmethod
     def load(cls, path: str | Path) -> "VisibilityGrid":

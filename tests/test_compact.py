@@ -1,5 +1,6 @@
 """Scene compaction: the weight pass against the torch oracle, pruning, SH lowering, visibility, bundle I/O, CLI."""
 
+import dataclasses
 import math
 import shutil
 
@@ -42,9 +43,10 @@ def test_max_weights_match_the_torch_oracle():
     width, height = 53, 37
     means, conics, opacities, depths = _random_2d(400, width, height, seed=1)
     # One Gaussian right behind an opaque stack covering it: every pixel it reaches stops before it.
-    means[-1], conics[-1], opacities[-1], depths[-1] = torch.tensor([20.0, 20.0]), torch.tensor([1.0, 0, 1.0]), 0.9, 50.0
+    centre = torch.tensor([20.0, 20.0])
+    means[-1], conics[-1], opacities[-1], depths[-1] = centre, torch.tensor([1.0, 0, 1.0]), 0.9, 50.0
     stack = slice(-9, -1)
-    means[stack], conics[stack], opacities[stack], depths[stack] = torch.tensor([20.0, 20.0]), torch.tensor([0.01, 0, 0.01]), 0.99, 0.01
+    means[stack], conics[stack], opacities[stack], depths[stack] = centre, torch.tensor([0.01, 0, 0.01]), 0.99, 0.01
     fast = max_weights(means, conics, opacities, depths, width, height)
     ref = max_weights_reference(means.double(), conics.double(), opacities.double(), depths.double(), width, height)
     assert torch.allclose(fast.double(), ref, atol=2e-5)
@@ -135,6 +137,17 @@ def test_visibility_subset_render_equals_full_render(garage, tmp_path):
     assert compact.scene_at([*grid.poses[0][:2], 0.5, 0, 0, 0]) is compact.bundle.scene  # not planar
 
 
+def test_cell_budget_keeps_the_most_visible_from_each_cell(garage):
+    _, b, grid, weights = garage
+    compact = reduce_bundle(b, grid, weights, dataclasses.replace(OPTIONS, cell_budget=0.3))
+    kept = weights[:, select(weights.amax(dim=0), 1.0)]
+    for c in np.unique(grid.cells):
+        members = torch.from_numpy(compact.visibility.members(c)).long()
+        others = ~torch.isin(torch.arange(kept.shape[1]), members)
+        assert len(members) == round(0.3 * kept.shape[1])
+        assert kept[c, members].min() >= kept[c, others].max()
+
+
 def test_visibility_round_trip_and_old_bundles(garage, tmp_path):
     path, b, grid, weights = garage
     compact = reduce_bundle(b, grid, weights, OPTIONS)
@@ -151,7 +164,8 @@ def test_visibility_round_trip_and_old_bundles(garage, tmp_path):
 def test_cli_writes_a_compact_bundle(garage, tmp_path, capsys):
     path = garage[0]
     out = tmp_path / "small"
-    argv = ["compact", str(path), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5", "--quiet"]
+    argv = ["compact", str(path), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5",
+            "--cell-budget", "0.5", "--quiet"]
     assert main(argv) == 0
     assert "visibility cells" in capsys.readouterr().out
     small = bundle_io.load(out)

@@ -16,13 +16,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "those never seen are always dropped), at most --budget of them, the most visible first; zero "
                     "the SH bands whose view-dependent colour change stays below --sh-tolerance (the scene's SH "
                     "degree drops when no Gaussian needs it); and store per cell the Gaussians seen from it "
-                    "(visibility.npz), so that serving renders only those at poses in that cell. OUTPUT is "
-                    "written only once complete.",
+                    "(visibility.npz; at most --cell-budget of them, the most visible from the cell first), so "
+                    "that serving renders only those at poses in that cell. OUTPUT is written only once complete.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("bundle", type=Path, help="scene bundle folder (parksim reconstruct output) with a map.json")
     p.add_argument("-o", "--output", type=Path, required=True, help="compact bundle folder to write")
     p.add_argument("--budget", type=float, default=1.0,
                    help="Gaussians to keep: a fraction of the scene when <= 1 (0.5 = half), else a count (40000)")
+    p.add_argument("--cell-budget", type=float, default=1.0,
+                   help="Gaussians each visibility cell serves, as a fraction (<= 1) or count (> 1) of the kept ones: "
+                        "the most visible from the cell's poses first")
     p.add_argument("--min-weight", type=float, default=0.0,
                    help="a Gaussian (and a cell's visibility entry) needs a blending weight above this somewhere")
     p.add_argument("--sh-tolerance", type=float, default=0.01,
@@ -48,8 +51,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.output} exists; pass --overwrite to replace it")
     if args.output.exists() and not args.output.is_dir():
         raise ValueError(f"{args.output} is a file, not a bundle folder")
-    options = CompactOptions(args.budget, args.min_weight, args.sh_tolerance, args.cell, args.poses_per_cell,
-                             args.margin, args.seed, not args.no_visibility)
+    options = CompactOptions(args.budget, args.cell_budget, args.min_weight, args.sh_tolerance, args.cell,
+                             args.poses_per_cell, args.margin, args.seed, not args.no_visibility)
     bundle = load(args.bundle)
     compact = compact_bundle(bundle, options, progress=not args.quiet)
     atomic_directory(args.output, lambda tmp: save(tmp, compact))

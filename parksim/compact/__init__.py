@@ -27,6 +27,7 @@ class CompactOptions:
     """What ``compact_bundle`` keeps: see ``parksim compact --help`` for each field's meaning."""
 
     budget: float = 1.0
+    cell_budget: float = 1.0
     min_weight: float = 0.0
     sh_tolerance: float = 0.01
     cell: float = 4.0
@@ -37,6 +38,7 @@ class CompactOptions:
 
     def __post_init__(self) -> None:
         check_budget(self.budget)
+        check_budget(self.cell_budget)
         for name in ("min_weight", "sh_tolerance", "margin"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name.replace('_', ' ')} must be a finite number >= 0, got {getattr(self, name)}")
@@ -56,10 +58,12 @@ def reduce_bundle(bundle: Bundle, grid: GridPoses, weights: torch.Tensor, option
     """The compact bundle from measured ``weights`` [cells, N]: pruned, SH lowered, visibility grid attached."""
     keep = select(weights.amax(dim=0), options.budget, options.min_weight)
     scene, degrees = lower_sh(bundle.scene.subset(keep), options.sh_tolerance)
-    grid_out = visibility_grid(grid, weights[:, keep], options.min_weight) if options.visibility else None
+    grid_out = (visibility_grid(grid, weights[:, keep], options.min_weight, options.cell_budget)
+                if options.visibility else None)
     report: dict[str, Any] = {
         "source_gaussians": len(bundle.scene), "gaussians": len(scene), "budget": options.budget,
-        "min_weight": options.min_weight, "sh_tolerance": options.sh_tolerance, "sh_degree": scene.sh_degree,
+        "cell_budget": options.cell_budget, "min_weight": options.min_weight, "sh_tolerance": options.sh_tolerance,
+        "sh_degree": scene.sh_degree,
         "sh_degree_counts": torch.bincount(degrees, minlength=bundle.scene.sh_degree + 1).tolist(),
         "poses": len(grid.poses), "cell_m": options.cell, "poses_per_cell": options.per_cell,
         "margin_m": options.margin, "seed": options.seed}

@@ -53,7 +53,7 @@ def _drivable(pose: np.ndarray, extent: tuple[tuple[float, float], tuple[float, 
     """The body at ``pose`` is inside the garage and touches no obstacle."""
     corners = footprint(pose, vehicle)
     (x0, x1), (y0, y1) = extent
-    inside = corners[:, 0].min() >= x0 and corners[:, 0].max() <= x1 and corners[:, 1].min() >= y0 and corners[:, 1].max() <= y1
+    inside = (corners.min(axis=0) >= (x0, y0)).all() and (corners.max(axis=0) <= (x1, y1)).all()
     return bool(inside) and not obstacles.collides(pose, vehicle)
 
 
@@ -82,4 +82,5 @@ def sample_grid_poses(world_map: dict[str, Any] | None, cell: float, per_cell: i
                 found += 1
                 if found == per_cell:
                     break
-    return GridPoses(gx0, gy0, float(cell), nx, ny, np.array(poses, np.float64).reshape(-1, 3), np.array(cells, np.int64))
+    return GridPoses(gx0, gy0, float(cell), nx, ny, np.array(poses, np.float64).reshape(-1, 3),
+                     np.array(cells, np.int64))

@@ -75,13 +75,17 @@ def lower_sh(scene: GaussianScene, tolerance: float) -> tuple[GaussianScene, Ten
                          sh[:, :(top + 1) ** 2].contiguous(), top), degrees
 
 
-def visibility_grid(grid: GridPoses, cell_weights: Tensor, min_weight: float = 0.0) -> VisibilityGrid:
-    """Per cell with poses, the Gaussians (columns of ``cell_weights`` [cells, N]) weighing above ``min_weight``."""
+def visibility_grid(grid: GridPoses, cell_weights: Tensor, min_weight: float = 0.0,
+                    cell_budget: float = 1.0) -> VisibilityGrid:
+    """Per cell with poses, the Gaussians (columns of ``cell_weights`` [cells, N]) ``select`` keeps from its weights.
+
+    ``cell_budget`` bounds each cell's list (fraction of N or count), the most visible from that cell first.
+    """
     measured = np.zeros(grid.n_cells, bool)
     measured[np.unique(grid.cells)] = True
-    seen = (cell_weights > min_weight) & torch.from_numpy(measured)[:, None]
-    counts = seen.sum(dim=1).numpy()
+    empty = torch.zeros(0, dtype=torch.long)
+    members = [select(cell_weights[c], cell_budget, min_weight) if measured[c] else empty for c in range(grid.n_cells)]
     offsets = np.zeros(grid.n_cells + 1, np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    indices = seen.nonzero()[:, 1].numpy().astype(np.int32)   # row-major: cell by cell, ascending within a cell
+    np.cumsum([len(m) for m in members], out=offsets[1:])
+    indices = torch.cat(members).numpy().astype(np.int32)
     return VisibilityGrid(grid.x0, grid.y0, grid.cell, grid.nx, grid.ny, offsets, indices, measured)
