@@ -220,6 +220,7 @@ render_gaussian = st.tuples(st.floats(0, 1), st.floats(0, 1), st.floats(0, 1),
        yaw=st.floats(-math.pi, math.pi), method=st.sampled_from(["ut", "ewa"]))
 def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, yaw, method, tiny_rig):
     from parksim.gaussians import GaussianScene
+    from parksim.geometry import pose_from_xy_yaw
     from parksim.render import render
 
     lo, hi = torch.tensor(SCENE_BOX[0]), torch.tensor(SCENE_BOX[1])
@@ -232,7 +233,7 @@ def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, ya
     params = [t.requires_grad_(True) for t in (means, quats, log_scales, torch.logit(opacities), sh)]
     scene = GaussianScene(*params, sh_degree=1)
     x, y = (SCENE_BOX[0][i] + f * (SCENE_BOX[1][i] - SCENE_BOX[0][i]) for i, f in ((0, fx), (1, fy)))
-    out = render(scene, tiny_rig, (x, y, yaw), bev=True, method=method)
+    out = render(scene, tiny_rig, pose_from_xy_yaw(x, y, yaw), bev=True, method=method)
     for name in tiny_rig.names:
         assert torch.isfinite(out.images[name]).all() and torch.isfinite(out.depth[name]).all()
         assert ((out.alpha[name] >= 0) & (out.alpha[name] <= 1 + 1e-6)).all()
@@ -240,7 +241,13 @@ def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, ya
     (sum(img.sum() for img in out.images.values()) + out.bev.sum()).backward()
     for t in params:
         assert t.grad is None or torch.isfinite(t.grad).all()
-    with torch.no_grad():
-        ref = render(scene.to(torch.float64), tiny_rig, (x, y, yaw), method=method, backend="torch")
-    for name in tiny_rig.names:
-        assert max_abs(out.images[name].double() - ref.images[name]) < 1e-3
+    # EWA linearises the lens at the mean: for a Gaussian wider than its distance to a camera it is ill-conditioned
+    # and float32 parts from float64 (0.6 % for sigma 55 m seen from 3 m: found by `parksim bench stress`).
+    T_world_vehicle = pose_from_xy_yaw(x, y, yaw)
+    centres = torch.stack([(T_world_vehicle @ c.T_vehicle_camera)[:3, 3] for c in tiny_rig.cameras.values()]).float()
+    nearest = torch.cdist(means.detach(), centres).min(dim=1).values
+    if method == "ut" or bool((log_scales.detach().max(dim=1).values.exp() < 0.5 * nearest).all()):
+        with torch.no_grad():
+            ref = render(scene.to(torch.float64), tiny_rig, T_world_vehicle, method=method, backend="torch")
+        for name in tiny_rig.names:
+            assert max_abs(out.images[name].double() - ref.images[name]) < 1e-3

@@ -188,8 +188,11 @@ def pyplot() -> Any:
     return plt
 
 
-def stamp(fig: Any, meta: dict[str, Any]) -> None:
-    """Write machine, threads, commit, date and load into a figure's footer."""
+def save_figure(fig: Any, meta: dict[str, Any], png: Path) -> None:
+    """Write machine, threads, commit, date and load into the figure's footer, save it as ``png`` and close it."""
     fig.text(0.01, 0.005, f"{meta['machine']} | threads numba {meta['numba_threads']} torch {meta['torch_threads']} | "
              f"commit {meta['commit']} | {meta['date']} | load {meta['load_start']}", fontsize=6, color="grey",
              ha="left", va="bottom")
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.savefig(png, dpi=110)
+    pyplot().close(fig)

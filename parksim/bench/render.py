@@ -25,7 +25,7 @@ from ..data import DatasetReader
 from ..gaussians import GaussianScene
 from ..render import render
 from ..rig import Rig
-from .common import md_table, metadata, progress, pyplot, set_threads, stamp, time_medians, write_result
+from .common import md_table, metadata, progress, pyplot, save_figure, set_threads, time_medians, write_result
 from .scenes import cap_sh_degree, garage_scene
 
 PSNR_CAP_DB = 80.0
@@ -227,19 +227,17 @@ def _plot(points: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> None
     front = sorted((p for p in points if p["pareto"]), key=lambda p: p["wall_ms"])
     ax.plot([p["wall_ms"] for p in front], [min(p["psnr_vs_full"], PSNR_CAP_DB) for p in front], "C3-", lw=1,
             label="Pareto front (x: renders other cameras/BEV)")
-    ax.set(xscale="log", xlabel="median latency (ms, wall)", ylabel=f"PSNR vs full quality (dB; exact = {PSNR_CAP_DB:g})",
-           title="render: latency vs error against the full-quality render")
+    ax.set(xscale="log", xlabel="median latency (ms, wall)",
+           ylabel=f"PSNR vs full quality (dB; exact = {PSNR_CAP_DB:g})", title="render: latency vs error against the full-quality render")
     ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
     if with_gt:
         ax = axes[0, 1]
         for p in with_gt:
             ax.scatter(p["wall_ms"], p["psnr_vs_gt"], color="C2")
-            ax.annotate(p["label"], (p["wall_ms"], p["psnr_vs_gt"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            ax.annotate(p["label"], (p["wall_ms"], p["psnr_vs_gt"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")
         ax.set(xscale="log", xlabel="median latency (ms, wall)", ylabel="PSNR vs ground truth (dB)",
                title="against the dataset's image")
         ax.grid(True, alpha=0.3)
-    stamp(fig, meta)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, meta, png)

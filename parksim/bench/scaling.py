@@ -17,8 +17,8 @@ import torch
 from ..data import DatasetReader
 from ..render import render
 from ..rig import Rig
-from .common import Timing, fit_exponent, md_table, metadata, progress, pyplot, set_threads, stamp, time_medians, \
-    write_result
+from .common import Timing, fit_exponent, md_table, metadata, progress, pyplot, save_figure, set_threads, \
+    time_medians, write_result
 from .scenes import garage_scene
 
 
@@ -90,10 +90,8 @@ def _plot(data: dict[str, Any], meta: dict[str, Any], png: Path) -> None:
         ax.loglog(xs, [t.wall_ms for t in ts], "o-", label="wall")
         ax.loglog(xs, [t.cpu_ms for t in ts], "s--", label="process CPU")
         ax.set(xlabel=xlabel, ylabel="forward ms (median)",
-               title=f"CPU ~ {'N' if key == 'gaussians' else 'px'}^{e['upper']:.2f} (upper half), ^{e['all']:.2f} (all)")
+               title=f"CPU ~ {'N' if key == 'gaussians' else 'px'}^{e['upper']:.2f} (upper half), "
+                     f"^{e['all']:.2f} (all)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    stamp(fig, meta)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(png, dpi=110)
-    plt.close(fig)
+    save_figure(fig, meta, png)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .common import md_table, metadata, progress, pyplot, stamp, write_result
+from .common import md_table, metadata, progress, pyplot, save_figure, write_result
 from .procs import rss_mib, serve_bundle
 from .train import ensure_dataset
 
@@ -150,8 +150,5 @@ def _plot_log(log: list[dict[str, Any]], x: str, keys: tuple[str, ...], meta: di
         ax.plot([r[x] for r in log], [r[key] for r in log], ".-")
         ax.set(xlabel=x, ylabel=key)
         ax.grid(True, alpha=0.3)
-    stamp(fig, meta)
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, meta, png)
 

@@ -13,7 +13,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
-from .common import ROOT, md_table, metadata, progress, pyplot, stamp, write_result
+from .common import ROOT, md_table, metadata, progress, pyplot, save_figure, write_result
 
 STRESS_TESTS = ROOT / "tests" / "test_stress.py"
 EXAMPLES_ENV = "PARKSIM_STRESS_EXAMPLES"
@@ -105,7 +105,4 @@ def _plot(rows: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> None:
             color=["C3" if r["outcome"] == "failed" else "C2" for r in rows])
     ax.set(xlabel="cases tried (red: property failed)", title="stress campaign")
     ax.tick_params(axis="y", labelsize=7)
-    stamp(fig, meta)
-    fig.tight_layout(rect=(0, 0.04, 1, 1))
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, meta, png)

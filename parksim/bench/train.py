@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .common import md_table, metadata, progress, pyplot, stamp, write_result
+from .common import md_table, metadata, progress, pyplot, save_figure, write_result
 
 TARGET_DB = 28.0
 
@@ -112,7 +112,4 @@ def _plot(results: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> Non
     for ax in (a, b):
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
-    stamp(fig, meta)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
+    save_figure(fig, meta, png)

@@ -65,7 +65,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                     "the error against the full-quality render (PSNR, max abs) and, for trained "
                                     "bundles, the PSNR against the dataset's ground truth at one test frame.")
     r.add_argument("--bundle", type=Path, action="append", default=[],
-                   help="a scene bundle; repeat to compare several (e.g. compaction levels); the first is the reference")
+                   help="a scene bundle; repeat to compare several (e.g. compaction levels); the first is the "
+                        "reference")
     r.add_argument("--dataset", type=Path,
                    help="dataset giving pose, rig and ground truth (default: the first bundle's; with no bundle a "
                         "garage-like scene of --gaussians is built from its points; default data/scene1_320, or "
