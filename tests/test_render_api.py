@@ -130,3 +130,48 @@ def test_render_is_differentiable_to_the_bev():
         d[i, k] = eps
         fd = (loss(scene.means + d) - loss(scene.means - d)) / (2 * eps)
         assert grad[i, k].item() == pytest.approx(fd.item(), rel=1e-4, abs=1e-7)
+
+
+def _sh3_scene(n: int, dtype: torch.dtype) -> GaussianScene:
+    """``ground_scene`` with degree-3 colours, a Gaussian at a camera centre and one behind the front camera."""
+    s = ground_scene(n=n, dtype=dtype)
+    sh = torch.rand(n, 16, 3, generator=torch.Generator().manual_seed(3), dtype=dtype) - 0.5
+    means = s.means.clone()
+    means[0] = torch.tensor([2.0, 0.0, 1.0], dtype=dtype)      # the front camera's centre
+    means[1] = torch.tensor([1.5, 0.3, 1.2], dtype=dtype)      # just behind the front camera's image plane
+    return GaussianScene(means, s.quats, s.log_scales, s.opacity_logits, sh, sh_degree=3)
+
+
+def test_one_pass_inference_matches_the_differentiable_path():
+    """Plain tensors take the one-pass kernel (all cameras, SH in the kernel); it equals the autograd path."""
+    rig, pose = tiny_rig(64, 48), (0.3, -0.2, 0.1)
+    scene = _sh3_scene(40, torch.float64)
+    cams = [rig.cameras[n] for n in rig.names]
+    assert api._fast_path(scene, pose, cams, "ut", "auto")
+    fast = render(scene, rig, pose, bev=True)
+    leaves = [t.clone().requires_grad_() for t in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
+                                                   scene.sh)]
+    grad_scene = GaussianScene(*leaves, sh_degree=3)
+    assert not api._fast_path(grad_scene, pose, cams, "ut", "auto")
+    ref = render(grad_scene, rig, pose, bev=True)
+    assert fast.bev is not None and float(fast.alpha["front"].max()) > 0.5
+    for name in rig.names:
+        torch.testing.assert_close(fast.images[name], ref.images[name].detach(), atol=1e-5, rtol=0)
+        torch.testing.assert_close(fast.alpha[name], ref.alpha[name].detach(), atol=1e-5, rtol=0)
+        torch.testing.assert_close(fast.depth[name], ref.depth[name].detach(), atol=1e-4, rtol=0)
+    torch.testing.assert_close(fast.bev, ref.bev.detach(), atol=1e-5, rtol=0)
+    with torch.no_grad():   # no_grad takes the one-pass kernel even for leaves that require grad
+        assert api._fast_path(grad_scene, pose, cams, "ut", "auto")
+        torch.testing.assert_close(render(grad_scene, rig, pose).images["rear"], fast.images["rear"])
+
+
+def test_one_pass_inference_hard_scene_stays_finite():
+    scene = _sh3_scene(12, torch.float32)
+    scene.opacity_logits = torch.full_like(scene.opacity_logits, 60.0)
+    scene.quats[2] = 0.0
+    scene.log_scales[3] = 5.0
+    scene.log_scales[4] = -100.0
+    scene.log_scales[5, 2] = -104.0                                         # denormal scale
+    out = render(scene, tiny_rig(), (0.0, 0.0, 0.0), bev=True)
+    for t in [*out.images.values(), *out.alpha.values(), *out.depth.values(), out.bev]:
+        assert torch.isfinite(t).all()

@@ -1,7 +1,10 @@
 """``render()``: a Gaussian scene seen by (some of) the rig's cameras at an ego pose, plus the BEV.
 
 Per requested camera: world -> camera transform, cull + project (``projection``), SH colour for
-the survivors only, rasterize. The BEV is the IPM of the rendered views, built only when asked.
+the survivors only, rasterize. When nothing needs a gradient (serving, evaluation) one kernel pass
+projects and colours the scene for all requested cameras (``project_fast.project_views_fused``), which
+reads each Gaussian once instead of once per camera. The BEV is the IPM of the rendered views, built
+only when asked.
 """
 
 from __future__ import annotations
@@ -20,8 +23,10 @@ from ..geometry import as_pose, invert_transform
 from ..gaussians import GaussianScene
 from ..ipm import IPM
 from ..rig import Rig, RigCamera
-from .projection import UTParams, project_gaussians
-from .rasterize import rasterize
+from .project_fast import FusedUTConfig, fused_supported, project_views_fused
+from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
+from .rasterize import rasterize, resolve_backend
+from .rasterize.cpu import composite
 from .sh import eval_sh
 
 __all__ = ["render", "RenderResult", "bev_ipm"]
@@ -97,13 +102,61 @@ def _rows(t: Tensor, rows: Tensor | None) -> Tensor:
     return t if rows is None else t.index_select(0, rows)
 
 
+def _fast_path(scene: GaussianScene, pose: Tensor | Sequence[float], cameras: Sequence[RigCamera], method: str,
+               backend: str) -> bool:
+    """Whether the one-pass inference kernel applies: nothing needs a gradient, UT, CPU float, built-in lenses."""
+    tensors = (scene.means, scene.quats, scene.log_scales, scene.opacity_logits, scene.sh)
+    needs_grad = torch.is_grad_enabled() and (any(t.requires_grad for t in tensors)
+                                              or (isinstance(pose, Tensor) and pose.requires_grad))
+    return (not needs_grad and method == "ut" and resolve_backend(backend, scene.means.device) == "numba"
+            and all(fused_supported(cam.model, scene.means, scene.quats, scene.log_scales, None) for cam in cameras)
+            and scene.sh.dtype == scene.means.dtype)
+
+
+def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_cameras: Sequence[Tensor],
+                     cfgs: Sequence[FusedUTConfig], background: Tensor) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """Inference path: ``(image, alpha, depth sum)`` per camera from one projection pass and the CPU compositor."""
+    proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
+                               scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],
+                               [cam.model for cam in cams], cfgs)
+    bg = background.to(torch.float32).numpy()
+    out = []
+    for k, cam in enumerate(cams):
+        _, _, rgb, depth_sum, t_final, _ = composite(proj.means2d[k], proj.conics[k], proj.colors[k],
+                                                     proj.opacities[k], proj.depths[k], cam.model.width,
+                                                     cam.model.height)
+        rgb += t_final[..., None] * bg
+        out.append(tuple(torch.from_numpy(a).to(scene.means.dtype) for a in (rgb, 1.0 - t_final, depth_sum)))
+    return out
+
+
+def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor, opacity: Tensor, background: Tensor,
+                   backend: str, method: str, ut_params: UTParams | None, cull: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """Differentiable path, one camera: ``(image, alpha, depth sum)`` by projection, SH colour and rasterizer."""
+    dtype = scene.means.dtype
+    T_camera_world = invert_transform(T_world_camera).to(dtype)
+    R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
+    proj = project_gaussians(torch.addmm(t, scene.means, R.T), (scene.quats, scene.log_scales, R), cam.model,
+                             method=method, ut_params=ut_params, cull=cull)
+    rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
+    keep = _rows(proj.index, rows)
+    dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(dtype)
+    # A Gaussian centred exactly on the camera has no view direction: any unit vector does.
+    colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+                     scene.sh_degree)
+    return rasterize(_rows(proj.means2d, rows), _rows(proj.conics, rows), colors, opacity.index_select(0, keep),
+                     _rows(proj.depths, rows), cam.model.width, cam.model.height, backend=backend, bg=background)
+
+
 def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
            bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
-           method: str = "ut", ut_params: UTParams | None = None) -> RenderResult:
+           method: str = "ut", ut_params: UTParams | None = None, cull: bool = True) -> RenderResult:
     """Render ``cameras`` (default: all of the rig) at ``pose`` (4x4 ``T_world_vehicle`` or ``(x, y, yaw)``).
 
-    Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend.
-    ``bev=True`` adds the IPM of the rendered views (the rig's BEV spec).
+    Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend; when no
+    gradient is needed (``torch.no_grad()`` or plain tensors) all cameras are projected in one kernel pass.
+    ``bev=True`` adds the IPM of the rendered views (the rig's BEV spec). ``cull=False`` projects every
+    Gaussian into every camera (only to measure what culling saves).
     """
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]
@@ -114,25 +167,19 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     view = _rig_view(rig, float(scale), names)
     dtype = scene.means.dtype
     T_world_vehicle = as_pose(pose)
-    opacity = torch.sigmoid(scene.opacity_logits)
     background = torch.as_tensor(bg, dtype=dtype)
+    cams = [view.rig.cameras[name] for name in names]
+    T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera for cam in cams]
+    if _fast_path(scene, pose, cams, method, backend):
+        params = ut_params or UTParams()
+        cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
+        raw = _composite_views(scene, cams, T_world_cameras, cfgs, background)
+    else:
+        opacity = torch.sigmoid(scene.opacity_logits)
+        raw = [_render_camera(scene, cam, T, opacity, background, backend, method, ut_params, cull)
+               for cam, T in zip(cams, T_world_cameras)]
     images, alphas, depths = {}, {}, {}
-    for name in names:
-        cam = view.rig.cameras[name]
-        T_world_camera = T_world_vehicle @ cam.T_vehicle_camera
-        T_camera_world = invert_transform(T_world_camera).to(dtype)
-        R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
-        proj = project_gaussians(torch.addmm(t, scene.means, R.T), (scene.quats, scene.log_scales, R), cam.model,
-                                 method=method, ut_params=ut_params)
-        rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
-        keep = _rows(proj.index, rows)
-        dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(dtype)
-        # A Gaussian centred exactly on the camera has no view direction: any unit vector does.
-        colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12),
-                         scene.sh_degree)
-        image, alpha, depth_sum = rasterize(
-            _rows(proj.means2d, rows), _rows(proj.conics, rows), colors, opacity.index_select(0, keep),
-            _rows(proj.depths, rows), cam.model.width, cam.model.height, backend=backend, bg=background)
+    for name, (image, alpha, depth_sum) in zip(names, raw):
         lens = view.lens_mask(name)
         images[name] = torch.where(lens.unsqueeze(-1), image, background)
         alphas[name], depth_sum = alpha * lens, depth_sum * lens

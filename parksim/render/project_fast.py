@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -19,8 +19,10 @@ from torch import Tensor
 
 from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
 from . import project_kernels as pk
+from .views_kernels import project_views
 
-__all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "keep_torch_threads"]
+__all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "project_views_fused", "ViewsProjected",
+           "keep_torch_threads"]
 
 _MODEL_IDS: dict[type[CameraModel], int] = {
     OpenCVFisheye: pk.OPENCV_FISHEYE, RadialPolyFisheye: pk.RADIAL_POLY, Pinhole: pk.PINHOLE}
@@ -31,7 +33,8 @@ class FusedUTConfig:
     """Everything the kernels need besides the tensors: sigma-point sets ``(z, wm, wc)``, rules and limits.
 
     Angles in radians; ``adaptive_*`` as ``UTParams`` (blend ramp ``adaptive_blend_theta`` wide),
-    ``blur`` the 2D blur in px^2, eigenvalues clamped to ``[blur, (max_radius / extent_sigmas)^2]``.
+    ``blur`` the 2D blur in px^2, eigenvalues clamped to ``[blur, (max_radius / extent_sigmas)^2]``;
+    ``cull`` False projects every Gaussian (to measure what culling saves).
     """
 
     unscented: tuple[Tensor, Tensor, Tensor]
@@ -45,6 +48,7 @@ class FusedUTConfig:
     blur: float
     extent_sigmas: float
     max_radius: float
+    cull: bool = True
 
 
 def fused_supported(camera: CameraModel, means: Tensor, quats: Tensor, log_scales: Tensor,
@@ -58,12 +62,13 @@ def fused_supported(camera: CameraModel, means: Tensor, quats: Tensor, log_scale
 
 
 def _lens(camera: CameraModel) -> np.ndarray:
-    """The kernels' ``lens`` array: fx, fy, cx, cy, theta_max, rho_max, q(0), k1..k4."""
+    """The kernels' ``lens`` array: fx, fy, cx, cy, theta_max, rho_max, q(0), k1..k4, cos and sin of theta_max."""
     k = np.zeros(4)
     k[:camera.k.numel()] = camera.k.detach().numpy()
     q0 = float(camera.q(torch.zeros((), dtype=torch.float64), camera.k.detach()))
     return np.array([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
-                     camera.theta_max, camera.rho_max, q0, *k], dtype=np.float64)
+                     camera.theta_max, camera.rho_max, q0, *k, math.cos(camera.theta_max), math.sin(camera.theta_max)],
+                    dtype=np.float64)
 
 
 def _opts(cfg: FusedUTConfig, camera: CameraModel, dtype: torch.dtype) -> np.ndarray:
@@ -83,6 +88,7 @@ def _opts(cfg: FusedUTConfig, camera: CameraModel, dtype: torch.dtype) -> np.nda
     o[pk.HEIGHT] = camera.height
     o[pk.NEAR] = cfg.near
     o[pk.FAR] = cfg.far
+    o[pk.CULL] = float(cfg.cull)
     return o
 
 
@@ -168,3 +174,36 @@ def project_ut_fused(means_cam: Tensor, quats: Tensor, log_scales: Tensor, R_cam
     """
     rot = torch.eye(3, dtype=torch.float64) if R_cam_world is None else R_cam_world
     return _ProjectUT.apply(means_cam, quats, log_scales, rot, camera, cfg)
+
+
+class ViewsProjected(NamedTuple):
+    """Dense per-camera rows ``[C, N, ...]`` (float32) of ``project_views_fused``; opacity 0 = not drawn."""
+
+    means2d: np.ndarray
+    conics: np.ndarray
+    colors: np.ndarray
+    opacities: np.ndarray
+    depths: np.ndarray
+
+
+def project_views_fused(means: Tensor, quats: Tensor, log_scales: Tensor, opacities: Tensor, sh: Tensor,
+                        sh_degree: int, T_camera_world: Sequence[Tensor], cameras: Sequence[CameraModel],
+                        cfgs: Sequence[FusedUTConfig]) -> ViewsProjected:
+    """Cull, UT-project and SH-colour world Gaussians into every camera in one kernel pass (no autograd).
+
+    ``T_camera_world[c]`` (4x4) places camera ``c``; ``cfgs[c]`` holds its UT rules and limits. Each
+    Gaussian's rotation and scales are read once for all cameras, and only drawn Gaussians are coloured.
+    """
+    n, c = means.shape[0], len(cameras)
+    T = np.stack([np.asarray(t.detach().to(torch.float64).numpy()) for t in T_camera_world])
+    rots, trans = np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3])
+    centres = np.ascontiguousarray(-np.einsum("cji,cj->ci", rots, trans))   # -R^T t
+    models = np.array([_MODEL_IDS[type(cam)] for cam in cameras], dtype=np.int64)
+    lenses = np.stack([_lens(cam) for cam in cameras])
+    opts = np.stack([_opts(cfg, cam, means.dtype) for cfg, cam in zip(cfgs, cameras)])
+    out = ViewsProjected(np.empty((c, n, 2), np.float32), np.empty((c, n, 3), np.float32),
+                         np.empty((c, n, 3), np.float32), np.empty((c, n), np.float32), np.empty((c, n), np.float32))
+    with keep_torch_threads():
+        project_views(_np(means), _np(quats), _np(log_scales), _np(opacities), _np(sh), sh_degree, rots, trans,
+                      centres, models, lenses, opts, *_sets(cfgs[0]), *out)
+    return out

@@ -36,10 +36,13 @@ from ..geometry import rotation_from_quaternion
 from .project_fast import FusedUTConfig, fused_supported, project_ut_fused
 
 __all__ = ["UTParams", "Projected2D", "SigmaPoints", "project_gaussians", "cull_mask", "covariance_sqrt",
-           "BLUR_PX2", "BACKENDS"]
+           "fused_config", "BLUR_PX2", "BACKENDS", "NEAR_M", "FAR_M"]
 
 BLUR_PX2 = 0.3
 """Isotropic 2D blur added to every footprint (as 3DGS): a Gaussian never gets thinner than a pixel."""
+
+NEAR_M, FAR_M = 0.05, 1000.0
+"""Default culling distances from the camera centre, in metres."""
 
 _EXTENT_SIGMAS = 3.0
 _BLEND_THETA_DEG = 10.0
@@ -234,17 +237,18 @@ def _clamp_eigenvalues(cov: Tensor, lo: float, hi: float) -> Tensor:
     return torch.where(need[..., None], clamped, cov)
 
 
-def _fused_config(params: UTParams, near: float, far: float, cap: float) -> FusedUTConfig:
-    """This module's UT rules and limits, as the fused kernel takes them."""
+def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bool = True) -> FusedUTConfig:
+    """This module's UT rules and limits, as the fused kernels take them."""
     ut, fifth = SigmaPoints.unscented(params.alpha, params.beta, params.kappa), SigmaPoints.fifth_degree()
     return FusedUTConfig((ut.z, ut.wm, ut.wc), (fifth.z, fifth.wm, fifth.wc), params.adaptive,
                          math.radians(params.adaptive_min_theta_deg), math.radians(_BLEND_THETA_DEG),
-                         params.adaptive_min_rel_size, near, far, BLUR_PX2, _EXTENT_SIGMAS, cap)
+                         params.adaptive_min_rel_size, near, far, BLUR_PX2, _EXTENT_SIGMAS, cap, cull)
 
 
 def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Tensor | None], camera: CameraModel,
-                      method: str = "ut", ut_params: UTParams | None = None, near: float = 0.05,
-                      far: float = 1000.0, max_radius: float | None = None, backend: str = "auto") -> Projected2D:
+                      method: str = "ut", ut_params: UTParams | None = None, near: float = NEAR_M,
+                      far: float = FAR_M, max_radius: float | None = None, backend: str = "auto",
+                      cull: bool = True) -> Projected2D:
     """Cull, then project Gaussians given in the camera frame (OpenCV axes) into ``camera``.
 
     ``cov`` is either camera-frame covariances ``[N,3,3]`` or ``(quats, log_scales, R_cam_world)``
@@ -252,6 +256,7 @@ def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Ten
     ``max_radius`` caps the 3-sigma footprint radius in pixels (default: the image's larger side).
     ``backend`` "auto" runs UT with ``(quats, log_scales, R)`` on CPU float tensors through the fused
     kernel (``project_fast``, same results), everything else here; "torch" forces this module's path.
+    ``cull`` False projects every Gaussian (only to measure what culling saves).
     """
     if method not in ("ut", "ewa"):
         raise ValueError(f"project_gaussians: method must be 'ut' or 'ewa', got {method!r}")
@@ -265,12 +270,13 @@ def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Ten
                          "float32/float64 of one dtype and an OpenCVFisheye, RadialPolyFisheye or Pinhole camera")
     if fusable and backend != "torch":
         return Projected2D(*project_ut_fused(means_cam, cov[0], cov[1], cov[2], camera,
-                                             _fused_config(params, near, far, cap)))
+                                             fused_config(params, near, far, cap, cull)))
     if isinstance(cov, Tensor):   # sqrt(trace): an upper bound of the largest standard deviation
         sigma_max = torch.sqrt(torch.clamp_min(cov.diagonal(dim1=-2, dim2=-1).sum(-1), 0.0))
     else:
         sigma_max = torch.exp(cov[1].amax(dim=-1))
-    index = cull_mask(means_cam, sigma_max.detach(), camera, near, far).nonzero().squeeze(1)
+    keep = cull_mask(means_cam, sigma_max.detach(), camera, near, far) if cull else torch.ones_like(sigma_max) > 0
+    index = keep.nonzero().squeeze(1)
     mu = means_cam[index]
     L = _cholesky_sqrt(cov[index]) if isinstance(cov, Tensor) else covariance_sqrt(cov[0][index], cov[1][index], cov[2])
     L = L.to(mu.dtype)

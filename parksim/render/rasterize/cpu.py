@@ -25,6 +25,25 @@ def _heaviest_first(bins: TileBins) -> np.ndarray:
     return np.argsort(-np.diff(bins.offsets), kind="stable")
 
 
+def composite(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opacities: np.ndarray,
+              depths: np.ndarray, width: int, height: int, t_min: float = T_MIN
+              ) -> tuple[TileBins, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bin and composite float32 Gaussians: ``(bins, tile order, rgb, depth sum, final T, last index)``.
+
+    Rows with opacity below ``ALPHA_MIN`` (or a non-positive-definite conic) are skipped and never read.
+    """
+    rgb = np.empty((height, width, 3), np.float32)
+    depth = np.empty((height, width), np.float32)
+    t_final = np.empty((height, width), np.float32)
+    last = np.empty((height, width), np.int64)
+    with keep_torch_threads():
+        bins = bin_gaussians(means2d, conics, colors, opacities, depths, width, height)
+        order = _heaviest_first(bins)
+        kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
+                        width, height, rgb, depth, t_final, last, np.float32(t_min))
+    return bins, order, rgb, depth, t_final, last
+
+
 class _RasterizeCPU(torch.autograd.Function):
     """Forward renders with the tile kernels and keeps (bins, T_final, last index) for the backward."""
 
@@ -32,15 +51,7 @@ class _RasterizeCPU(torch.autograd.Function):
     def forward(ctx: Any, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
                 width: int, height: int, bg: Tensor | None, t_min: float) -> tuple[Tensor, Tensor, Tensor]:
         inputs = [_f32(t) for t in (means2d, conics, colors, opacities, depths)]
-        rgb = np.empty((height, width, 3), np.float32)
-        depth = np.empty((height, width), np.float32)
-        t_final = np.empty((height, width), np.float32)
-        last = np.empty((height, width), np.int64)
-        with keep_torch_threads():
-            bins = bin_gaussians(*inputs, width, height)
-            order = _heaviest_first(bins)
-            kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
-                            width, height, rgb, depth, t_final, last, np.float32(t_min))
+        bins, order, rgb, depth, t_final, last = composite(*inputs, width, height, t_min)
         bg32 = np.zeros(3, np.float32) if bg is None else _f32(bg).reshape(3)
         ctx.state = (bins, order, t_final, last, bg32, width, height)
         ctx.like = [(t.dtype, t.device) for t in (means2d, conics, colors, opacities, depths)]

@@ -1,0 +1,107 @@
+"""Numba kernel of the inference path: every camera of a rig projected and coloured in one pass over the scene.
+
+Per Gaussian: its rotation and scales are read once, then for each camera the world -> camera transform,
+the cull test, the UT footprint (the same inline steps as ``project_kernels.forward``) and the SH colour
+along the camera's view direction. Outputs are dense ``[cameras, N]`` rows; a Gaussian a camera does not
+draw gets opacity 0, which the rasterizer's binning skips. No autograd: training uses ``project_fast``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..gaussians import SH_C0
+from . import project_kernels as pk
+from .sh import _C1, _C2, _C3
+
+__all__ = ["project_views"]
+
+
+@numba.njit(inline="always", cache=True)
+def _sh_basis(degree: int, x: float, y: float, z: float, basis: np.ndarray) -> int:
+    """Real SH basis of unit direction ``(x, y, z)`` up to ``degree`` into ``basis``; returns its length."""
+    basis[0] = SH_C0
+    if degree < 1:
+        return 1
+    basis[1], basis[2], basis[3] = -_C1 * y, _C1 * z, -_C1 * x
+    if degree < 2:
+        return 4
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+    basis[4], basis[5], basis[6] = _C2[0] * xy, _C2[1] * yz, _C2[2] * (2 * zz - xx - yy)
+    basis[7], basis[8] = _C2[3] * xz, _C2[4] * (xx - yy)
+    if degree < 3:
+        return 9
+    basis[9], basis[10] = _C3[0] * y * (3 * xx - yy), _C3[1] * xy * z
+    basis[11], basis[12] = _C3[2] * y * (4 * zz - xx - yy), _C3[3] * z * (2 * zz - 3 * xx - 3 * yy)
+    basis[13], basis[14] = _C3[4] * x * (4 * zz - xx - yy), _C3[5] * z * (xx - yy)
+    basis[15] = _C3[6] * x * (xx - 3 * yy)
+    return 16
+
+
+@numba.njit(cache=True)
+def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
+                 opacities: np.ndarray, sh: np.ndarray, sh_degree: int, rots: np.ndarray, trans: np.ndarray,
+                 centres: np.ndarray, models: np.ndarray, lenses: np.ndarray, opts: np.ndarray, z7: np.ndarray,
+                 wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray, wc19: np.ndarray,
+                 out_means: np.ndarray, out_conics: np.ndarray, out_colors: np.ndarray, out_opacities: np.ndarray,
+                 out_depths: np.ndarray) -> None:
+    """``project_views`` for the Gaussians ``start:stop`` (one thread's chunk), all cameras."""
+    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
+    R, L, s, mom, basis = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5)), np.empty(16)
+    n_cams = rots.shape[0]
+    for g in range(start, stop):
+        mx, my, mz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        qw, qx, qy, qz, _ = pk._unit_quaternion(quats[g])
+        pk._rotation(qw, qx, qy, qz, R)
+        for j in range(3):
+            s[j] = math.exp(float(log_scales[g, j]))
+        sigma = max(s[0], s[1], s[2])
+        n_basis = -1
+        for cam in range(n_cams):
+            out_opacities[cam, g] = 0.0
+            rot, lens, opt = rots[cam], lenses[cam], opts[cam]
+            x = rot[0, 0] * mx + rot[0, 1] * my + rot[0, 2] * mz + trans[cam, 0]
+            y = rot[1, 0] * mx + rot[1, 1] * my + rot[1, 2] * mz + trans[cam, 1]
+            z = rot[2, 0] * mx + rot[2, 1] * my + rot[2, 2] * mz + trans[cam, 2]
+            if not pk._visible(lens, opt, x, y, z, log_scales[g]):
+                continue
+            pk._rotate_scaled(rot, R, s, L)
+            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, sigma, L, z7, wm7, wc7,
+                                                           z19, wm19, wc19, uv7, uv19, mom)
+            if not valid:
+                continue
+            det = a * c - b * b
+            out_means[cam, g, 0], out_means[cam, g, 1] = u, v
+            out_conics[cam, g, 0], out_conics[cam, g, 1], out_conics[cam, g, 2] = c / det, -b / det, a / det
+            out_depths[cam, g] = depth
+            dx, dy, dz = mx - centres[cam, 0], my - centres[cam, 1], mz - centres[cam, 2]
+            inv = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # a Gaussian at the camera: any direction
+            n_basis = _sh_basis(sh_degree, dx * inv, dy * inv, dz * inv, basis)
+            for ch in range(3):
+                acc = 0.0
+                for k in range(n_basis):
+                    acc += basis[k] * sh[g, k, ch]
+                out_colors[cam, g, ch] = max(acc + 0.5, 0.0)
+            out_opacities[cam, g] = opacities[g]
+
+
+@numba.njit(parallel=True, cache=True)
+def project_views(means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, opacities: np.ndarray,
+                  sh: np.ndarray, sh_degree: int, rots: np.ndarray, trans: np.ndarray, centres: np.ndarray,
+                  models: np.ndarray, lenses: np.ndarray, opts: np.ndarray, z7: np.ndarray, wm7: np.ndarray,
+                  wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray, wc19: np.ndarray, out_means: np.ndarray,
+                  out_conics: np.ndarray, out_colors: np.ndarray, out_opacities: np.ndarray,
+                  out_depths: np.ndarray) -> None:
+    """World Gaussians -> per-camera 2D means, conics, colours, opacities (0: not drawn) and distances.
+
+    Camera ``c`` has ``T_camera_world = [rots[c] | trans[c]]``, centre ``centres[c]`` in the world, lens model
+    ``models[c]`` with ``lenses[c]`` and ``opts[c]`` as ``project_kernels``; ``sh`` is ``[N, K, 3]``.
+    """
+    n = means.shape[0]
+    for ch in numba.prange((n + pk.CHUNK - 1) // pk.CHUNK):
+        _views_range(ch * pk.CHUNK, min(n, (ch + 1) * pk.CHUNK), means, quats, log_scales, opacities, sh,
+                     sh_degree, rots, trans, centres, models, lenses, opts, z7, wm7, wc7, z19, wm19, wc19,
+                     out_means, out_conics, out_colors, out_opacities, out_depths)
