@@ -26,7 +26,7 @@ from ..rig import Rig, RigCamera
 from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
-from .rasterize.cpu import composite
+from .rasterize.cpu import Image, composite_many
 from .sh import eval_sh
 
 __all__ = ["render", "RenderResult", "bev_ipm"]
@@ -119,12 +119,11 @@ def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_ca
     proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
                                scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],
                                [cam.model for cam in cams], cfgs)
+    images = [Image(proj.means2d[k], proj.conics[k], proj.colors[k], proj.opacities[k], proj.depths[k],
+                    cam.model.width, cam.model.height) for k, cam in enumerate(cams)]
     bg = background.to(torch.float32).numpy()
     out = []
-    for k, cam in enumerate(cams):
-        _, _, rgb, depth_sum, t_final, _ = composite(proj.means2d[k], proj.conics[k], proj.colors[k],
-                                                     proj.opacities[k], proj.depths[k], cam.model.width,
-                                                     cam.model.height)
+    for rgb, depth_sum, t_final in composite_many(images):
         rgb += t_final[..., None] * bg
         out.append(tuple(torch.from_numpy(a).to(scene.means.dtype) for a in (rgb, 1.0 - t_final, depth_sum)))
     return out

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any
+import threading
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -42,6 +45,51 @@ def composite(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opaci
         kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
                         width, height, rgb, depth, t_final, last, np.float32(t_min))
     return bins, order, rgb, depth, t_final, last
+
+
+class Image(NamedTuple):
+    """One image's float32 Gaussian rows for ``composite_many`` (opacity 0 = not drawn) and its size."""
+
+    means2d: np.ndarray
+    conics: np.ndarray
+    colors: np.ndarray
+    opacities: np.ndarray
+    depths: np.ndarray
+    width: int
+    height: int
+
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The compositor's worker threads (made once, grown when more are asked for)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL._max_workers < workers:
+            _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="parksim-composite")
+        return _POOL
+
+
+def _composite_alone(image: Image, t_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rgb, depth sum, final T)`` of one image on this thread only (numba's thread count is per thread)."""
+    numba.set_num_threads(1)
+    return composite(*image, t_min)[2:5]
+
+
+def composite_many(images: Sequence[Image], t_min: float = T_MIN) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``(rgb, depth sum, final T)`` of several images, each composited whole on one of numba's threads.
+
+    Binning, depth sorting and bucketing are serial per image, so on a few cores giving each image its own
+    core (largest first) keeps them all busy where splitting every image across cores would not.
+    """
+    workers = min(numba.get_num_threads(), len(images))
+    if workers <= 1:
+        return [composite(*image, t_min)[2:5] for image in images]
+    order = sorted(range(len(images)), key=lambda k: -int(np.count_nonzero(images[k].opacities)))
+    futures = {k: _pool(workers).submit(_composite_alone, images[k], t_min) for k in order}
+    return [futures[k].result() for k in range(len(images))]
 
 
 class _RasterizeCPU(torch.autograd.Function):

@@ -125,7 +125,7 @@ def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_mi
             last_out[py, px] = start + np.int64(state[6, i]) - 1
 
 
-@numba.njit(parallel=True, fastmath=True, error_model="numpy", cache=True)
+@numba.njit(parallel=True, nogil=True, fastmath=True, error_model="numpy", cache=True)
 def forward(offsets, gauss_ids, packed, tiles_x, tile_order, n_workers, width, height,
             rgb_out, depth_out, t_out, last_out, t_min=_T_MIN):
     """All tiles dealt over n_workers threads: rgb [H,W,3], expected depth, final T, last contributing index.

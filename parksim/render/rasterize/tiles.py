@@ -56,7 +56,7 @@ def _params(means, conics, opacities, g) -> tuple[float, float, float, float, fl
             np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2]), q)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def _count_and_pack(means, conics, colors, opacities, depths, width, height, packed, counts):
     """Per Gaussian: the packed row and the number of tiles its ellipse touches (0 if culled)."""
     for g in numba.prange(means.shape[0]):
@@ -81,7 +81,7 @@ def _count_and_pack(means, conics, colors, opacities, depths, width, height, pac
         row[10], row[11] = py_lo, py_hi
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, nogil=True, cache=True)
 def _fill_tiles(starts, means, conics, opacities, width, height, tiles_x, tile_of_slot):
     """Write the tile id of every (Gaussian, tile) intersection into the Gaussian's slots."""
     for g in numba.prange(means.shape[0]):
@@ -98,7 +98,7 @@ def _fill_tiles(starts, means, conics, opacities, width, height, tiles_x, tile_o
                 k += 1
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _bucket_by_tile(order, starts, tile_of_slot, n_tiles, offsets, gauss_ids, slot_of):
     """Counting sort of intersections by tile, visiting Gaussians in depth order so tile lists come out sorted."""
     for k in range(tile_of_slot.shape[0]):
@@ -114,7 +114,7 @@ def _bucket_by_tile(order, starts, tile_of_slot, n_tiles, offsets, gauss_ids, sl
             cursor[t] += 1
 
 
-@numba.njit(cache=True)
+@numba.njit(nogil=True, cache=True)
 def _depth_order(depths, counts) -> np.ndarray:
     """Indices of Gaussians with counts > 0 by ascending depth, ties by index: LSD radix sort on float bits."""
     idx = np.flatnonzero(counts > 0).astype(np.int32)
