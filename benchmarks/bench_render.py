@@ -7,8 +7,10 @@ pose of its trajectory; the BEV is 512x512 over the rig's 10 m. Timings are medi
 warm-up (``parksim.bench.common.time_medians``). ``--reference MODULE``
 times a copy of the package (importable as MODULE, e.g. an unmodified ``parksim`` copied to
 ``/tmp/before/parksim_before``) alternately with this one in the same process, for before/after
-tables under the same load. Skips switched off: culling by replacing the fused kernel's cull with
-keep-all, early termination by rasterizing with ``t_min = 0``, camera selection by rendering all four.
+tables under the same load. Skips switched off: culling by ``render(cull=False)`` (keep-all through the
+cull kernel in older copies), early termination by compositing with ``t_min = 0``, camera selection by
+rendering all four. Forward cases run under ``torch.no_grad()``, i.e. the one-pass inference path where
+the copy has one.
 
     PYTHONPATH=/tmp/before .venv/bin/python benchmarks/bench_render.py --dataset data/scene1_320 \
         --reference parksim_before --numba-threads 1 --out benchmarks/RESULTS_render.md
@@ -64,9 +66,9 @@ class Stack:
 
     name: str
 
-    @functools.cached_property
+    @property
     def render(self) -> Callable[..., object]:
-        """The package's ``render``."""
+        """The package's ``render`` (looked up on each use, so the skip switches' patches apply)."""
         return importlib.import_module(f"{self.name}.render.api").render
 
     def rig(self, dataset: Path) -> object:
@@ -85,14 +87,18 @@ class Stack:
 
     @contextlib.contextmanager
     def no_cull(self) -> Iterator[None]:
-        """Within the block the fused projection keeps every Gaussian (culling switched off)."""
+        """Within the block every Gaussian is projected into every camera (culling switched off).
+
+        Copies whose ``render`` takes ``cull`` get ``cull=False``; older ones keep-all through their cull kernel.
+        """
+        api = importlib.import_module(f"{self.name}.render.api")
+        if "cull" in inspect.signature(api.render).parameters:
+            with _patched(api, "render", functools.partial(api.render, cull=False)):
+                yield
+            return
         pk = importlib.import_module(f"{self.name}.render.project_kernels")
-        original = pk.cull
-        pk.cull = lambda means, log_scales, lens, opts, keep: keep.fill(True)
-        try:
+        with _patched(pk, "cull", lambda means, log_scales, lens, opts, keep: keep.fill(True)):
             yield
-        finally:
-            pk.cull = original
 
     def supports(self, skip_off: str) -> bool:
         """Whether this copy can switch ``skip_off`` off (older copies have no ``t_min`` rasterizer option)."""
@@ -101,14 +107,26 @@ class Stack:
 
     @contextlib.contextmanager
     def no_early_stop(self) -> Iterator[None]:
-        """Within the block the CPU rasterizer composites every Gaussian (``t_min = 0``: no early termination)."""
+        """Within the block the CPU rasterizer composites every Gaussian (``t_min = 0``: no early termination),
+        on the differentiable path and, where the copy has it, the one-pass inference path."""
         cpu = importlib.import_module(f"{self.name}.render.rasterize.cpu")
-        original = cpu.rasterize_cpu
-        cpu.rasterize_cpu = functools.partial(original, t_min=0.0)
-        try:
+        api = importlib.import_module(f"{self.name}.render.api")
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(_patched(cpu, "rasterize_cpu", functools.partial(cpu.rasterize_cpu, t_min=0.0)))
+            if hasattr(api, "composite_many"):
+                stack.enter_context(_patched(api, "composite_many", functools.partial(api.composite_many, t_min=0.0)))
             yield
-        finally:
-            cpu.rasterize_cpu = original
+
+
+@contextlib.contextmanager
+def _patched(module: object, name: str, value: object) -> Iterator[None]:
+    """``module.name = value`` within the block."""
+    original = getattr(module, name)
+    setattr(module, name, value)
+    try:
+        yield
+    finally:
+        setattr(module, name, original)
 
 
 def load_pose(dataset: Path, frame: int) -> torch.Tensor:
