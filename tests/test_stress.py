@@ -241,12 +241,17 @@ def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, ya
     (sum(img.sum() for img in out.images.values()) + out.bev.sum()).backward()
     for t in params:
         assert t.grad is None or torch.isfinite(t.grad).all()
-    # EWA linearises the lens at the mean: for a Gaussian wider than its distance to a camera it is ill-conditioned
-    # and float32 parts from float64 (0.6 % for sigma 55 m seen from 3 m: found by `parksim bench stress`).
+    # float64 agreement where the float32 render is defined (both limits found by `parksim bench stress`):
+    # - the compositing order: Gaussians at the same distance from a camera (coincident ones) are blended in an
+    #   unspecified order, which differs between float32 and float64 (1e-2 apart for two opaque ones);
+    # - EWA linearises the lens at the mean: for a Gaussian wider than its distance to a camera it is
+    #   ill-conditioned, and float32 parts from float64 (0.6 % for sigma 55 m seen from 3 m).
     T_world_vehicle = pose_from_xy_yaw(x, y, yaw)
     centres = torch.stack([(T_world_vehicle @ c.T_vehicle_camera)[:3, 3] for c in tiny_rig.cameras.values()]).float()
-    nearest = torch.cdist(means.detach(), centres).min(dim=1).values
-    if method == "ut" or bool((log_scales.detach().max(dim=1).values.exp() < 0.5 * nearest).all()):
+    distance = torch.cdist(means.detach(), centres)
+    ordered = bool((distance.sort(dim=0).values.diff(dim=0) > 1e-3).all())
+    linearisable = bool((log_scales.detach().max(dim=1).values.exp() < 0.5 * distance.min(dim=1).values).all())
+    if ordered and (method == "ut" or linearisable):
         with torch.no_grad():
             ref = render(scene.to(torch.float64), tiny_rig, T_world_vehicle, method=method, backend="torch")
         for name in tiny_rig.names:
