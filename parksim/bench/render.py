@@ -51,7 +51,7 @@ class Knobs:
         """Short description of the changed knob's value."""
         value = {"input": f"input {self.input}", "scale": f"scale {self.scale:g}", "sh": f"SH <= {self.sh_degree}",
                  "method": self.method, "cameras": "+".join(self.cameras or ("all",)) + (" + BEV" if self.bev else ""),
-                 "backend": self.backend, "threads": f"{self.threads} threads"}
+                 "backend": self.backend, "threads": f"{self.threads} thread{'s' if self.threads > 1 else ''}"}
         return "full quality" if self.knob == "full" else value[self.knob]
 
     @property
