@@ -36,6 +36,10 @@ N_ROT_GRAD = 9
 CHUNK = 256
 """Gaussians per parallel work item (one scratch allocation each)."""
 
+FASTMATH = {"contract", "arcp", "nsz", "reassoc"}
+"""LLVM fast-math flags of the per-chunk loops: FMA contraction, reciprocals and reassociation (~1.6x faster
+here), but not ``nnan``/``ninf``, so the kernels' NaN guards and ``isfinite`` tests keep their meaning."""
+
 
 _ATAN_P = (0.9999999999999895, -0.33333333331568515, 0.19999999682583666, -0.14285693667669663,
            0.11110453922288738, -0.090792021172482, 0.07569048052026542, -0.05893025346657178, 0.03092476390190522)
@@ -412,7 +416,7 @@ def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: floa
     return mean_u, mean_v, a, b, c, math.sqrt(x * x + y * y + z * z), radius, valid
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=FASTMATH)
 def _forward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
                    log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
                    z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
@@ -452,7 +456,7 @@ def forward(index: np.ndarray, means: np.ndarray, quats: np.ndarray, log_scales:
                        out_radii, out_valid)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=FASTMATH)
 def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
                     log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
                     z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,

@@ -41,7 +41,7 @@ def _sh_basis(degree: int, x: float, y: float, z: float, basis: np.ndarray) -> i
     return 16
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=pk.FASTMATH)
 def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
                  opacities: np.ndarray, sh: np.ndarray, sh_degree: int, rots: np.ndarray, trans: np.ndarray,
                  centres: np.ndarray, models: np.ndarray, lenses: np.ndarray, opts: np.ndarray, z7: np.ndarray,
