@@ -79,7 +79,7 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     world_map = reader.map if reader.layout.map.is_file() else None
-    save(out_dir, Bundle(trainer.params.snapshot(), reader.rig, world_map, meta))
+    save(out_dir, Bundle(trainer.params.snapshot().spatially_sorted(), reader.rig, world_map, meta))
     if (out_dir / METRICS_FILE).is_file():
         plot_metrics(out_dir / METRICS_FILE, out_dir / "metrics.png")
     log(f"wrote {out_dir}: {len(trainer.params)} Gaussians after {trainer.step} iterations "

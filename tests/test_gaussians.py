@@ -108,3 +108,14 @@ def test_shape_validation():
         GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits, scene.sh, sh_degree=2)
     with pytest.raises(ValueError, match="quats"):
         GaussianScene(scene.means, scene.quats[:, :3], scene.log_scales, scene.opacity_logits, scene.sh, 0)
+
+
+def test_spatially_sorted_is_a_permutation_that_groups_neighbours():
+    scene = GaussianScene.random(4000, sh_degree=2, seed=5)
+    ordered = scene.spatially_sorted()
+    rows = lambda s: torch.cat([s.means, s.quats, s.log_scales, s.opacity_logits[:, None], s.sh.flatten(1)], 1)  # noqa: E731
+    a, b = rows(scene), rows(ordered)
+    assert torch.equal(a[torch.argsort(a[:, 0])], b[torch.argsort(b[:, 0])])
+    step = lambda s: (s.means[1:] - s.means[:-1]).norm(dim=-1).median()  # noqa: E731
+    assert step(ordered) < 0.2 * step(scene)             # consecutive rows are near in space
+    assert len(GaussianScene.random(0).spatially_sorted()) == 0

@@ -39,7 +39,8 @@ def mean_spacing(xyz: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
 def garage_scene(dataset: Path, n: int, seed: int = 0, sh_degree: int = 3) -> GaussianScene:
     """N Gaussians on the dataset's surfaces, sized like a trained scene: points resampled and jittered in
     their tangent plane, flat discs along the surface (tangent sigma ~ the spacing at N, normal sigma 10 % of
-    it), mostly opaque, SH of degree ``sh_degree`` with the points' colours."""
+    it), mostly opaque, SH of degree ``sh_degree`` with the points' colours; stored spatially sorted, as
+    ``parksim reconstruct`` stores trained scenes."""
     from ..geometry import quaternion_from_rotation
 
     xyz, normals, rgb = read_points(dataset)
@@ -64,7 +65,7 @@ def garage_scene(dataset: Path, n: int, seed: int = 0, sh_degree: int = 3) -> Ga
     opacity_logits = rng.normal(2.5, 1.5, n)
     means_t, quats_t, scales_t, opac_t, sh_t = (torch.as_tensor(a).to(torch.float32).contiguous()
                                                  for a in (means, quats, log_scales, opacity_logits, sh))
-    return GaussianScene(means_t, quats_t, scales_t, opac_t, sh_t, sh_degree=sh_degree)
+    return GaussianScene(means_t, quats_t, scales_t, opac_t, sh_t, sh_degree=sh_degree).spatially_sorted()
 
 
 def cap_sh_degree(scene: GaussianScene, degree: int) -> GaussianScene:
