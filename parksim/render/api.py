@@ -15,6 +15,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -113,20 +114,33 @@ def _fast_path(scene: GaussianScene, pose: Tensor | Sequence[float], cameras: Se
             and scene.sh.dtype == scene.means.dtype)
 
 
+def _finish(image: Tensor, alpha: Tensor, depth_sum: Tensor, lens: Tensor, background: Tensor
+            ) -> tuple[Tensor, Tensor, Tensor]:
+    """A camera's ``(image, alpha, depth)``: background outside its lens circle, depth normalised by alpha."""
+    image = torch.where(lens.unsqueeze(-1), image, background)
+    alpha, depth_sum = alpha * lens, depth_sum * lens
+    covered = alpha > _MIN_ALPHA_FOR_DEPTH
+    return image, alpha, torch.where(covered, depth_sum / torch.where(covered, alpha, 1.0), 0.0)
+
+
 def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_cameras: Sequence[Tensor],
-                     cfgs: Sequence[FusedUTConfig], background: Tensor) -> list[tuple[Tensor, Tensor, Tensor]]:
-    """Inference path: ``(image, alpha, depth sum)`` per camera from one projection pass and the CPU compositor."""
+                     cfgs: Sequence[FusedUTConfig], lenses: Sequence[Tensor], background: Tensor
+                     ) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """Inference path: each camera's ``(image, alpha, depth)`` from one projection pass and the CPU compositor."""
     proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
                                scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],
                                [cam.model for cam in cams], cfgs)
     images = [Image(proj.means2d[k], proj.conics[k], proj.colors[k], proj.opacities[k], proj.depths[k],
                     cam.model.width, cam.model.height) for k, cam in enumerate(cams)]
-    bg = background.to(torch.float32).numpy()
-    out = []
-    for rgb, depth_sum, t_final in composite_many(images):
-        rgb += t_final[..., None] * bg
-        out.append(tuple(torch.from_numpy(a).to(scene.means.dtype) for a in (rgb, 1.0 - t_final, depth_sum)))
-    return out
+    bg = background.to(torch.float32)
+
+    def finish(k: int, rgb: np.ndarray, depth_sum: np.ndarray, t_final: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
+        t = torch.from_numpy(t_final)
+        image = torch.from_numpy(rgb).addcmul_(t.unsqueeze(-1), bg)
+        out = _finish(image, 1.0 - t, torch.from_numpy(depth_sum), lenses[k], bg)
+        return tuple(x.to(scene.means.dtype) for x in out)
+
+    return composite_many(images, finish)
 
 
 def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor, opacity: Tensor, background: Tensor,
@@ -169,21 +183,16 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     background = torch.as_tensor(bg, dtype=dtype)
     cams = [view.rig.cameras[name] for name in names]
     T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera for cam in cams]
+    lenses = [view.lens_mask(name) for name in names]
     if _fast_path(scene, pose, cams, method, backend):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
-        raw = _composite_views(scene, cams, T_world_cameras, cfgs, background)
+        views = _composite_views(scene, cams, T_world_cameras, cfgs, lenses, background)
     else:
         opacity = torch.sigmoid(scene.opacity_logits)
-        raw = [_render_camera(scene, cam, T, opacity, background, backend, method, ut_params, cull)
-               for cam, T in zip(cams, T_world_cameras)]
-    images, alphas, depths = {}, {}, {}
-    for name, (image, alpha, depth_sum) in zip(names, raw):
-        lens = view.lens_mask(name)
-        images[name] = torch.where(lens.unsqueeze(-1), image, background)
-        alphas[name], depth_sum = alpha * lens, depth_sum * lens
-        covered = alphas[name] > _MIN_ALPHA_FOR_DEPTH
-        depths[name] = torch.where(covered, depth_sum / torch.where(covered, alphas[name], 1.0), 0.0)
+        views = [_finish(*_render_camera(scene, cam, T, opacity, background, backend, method, ut_params, cull),
+                         lens, background) for cam, T, lens in zip(cams, T_world_cameras, lenses)]
+    images, alphas, depths = ({name: v[i] for name, v in zip(names, views)} for i in range(3))
     bev_image = None
     if bev:
         bev_image = bev_ipm(rig, scale, names)(images)

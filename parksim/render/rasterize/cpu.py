@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numba
 import numpy as np
@@ -47,6 +47,9 @@ def composite(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opaci
     return bins, order, rgb, depth, t_final, last
 
 
+R = TypeVar("R")
+
+
 class Image(NamedTuple):
     """One image's float32 Gaussian rows for ``composite_many`` (opacity 0 = not drawn) and its size."""
 
@@ -72,23 +75,28 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOL
 
 
-def _composite_alone(image: Image, t_min: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rgb, depth sum, final T)`` of one image on this thread only (numba's thread count is per thread)."""
+Finish = Callable[[int, np.ndarray, np.ndarray, np.ndarray], R]
+"""``finish(k, rgb, depth sum, final T)``: turns image ``k``'s compositor output into what the caller keeps."""
+
+
+def _composite_alone(k: int, image: Image, t_min: float, finish: Finish) -> R:
+    """Image ``k`` composited on this thread only (numba's thread count is per thread), then ``finish``-ed."""
     numba.set_num_threads(1)
-    return composite(*image, t_min)[2:5]
+    return finish(k, *composite(*image, t_min)[2:5])
 
 
-def composite_many(images: Sequence[Image], t_min: float = T_MIN) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """``(rgb, depth sum, final T)`` of several images, each composited whole on one of numba's threads.
+def composite_many(images: Sequence[Image], finish: Finish, t_min: float = T_MIN) -> list[R]:
+    """``finish(k, rgb, depth sum, final T)`` of several images, each composited whole on one of numba's threads.
 
     Binning, depth sorting and bucketing are serial per image, so on a few cores giving each image its own
-    core (largest first) keeps them all busy where splitting every image across cores would not.
+    core (largest first) keeps them all busy where splitting every image across cores would not; ``finish``
+    (e.g. masking, background) runs on the same thread, so it should release the GIL (numpy, torch).
     """
     workers = min(numba.get_num_threads(), len(images))
     if workers <= 1:
-        return [composite(*image, t_min)[2:5] for image in images]
+        return [finish(k, *composite(*image, t_min)[2:5]) for k, image in enumerate(images)]
     order = sorted(range(len(images)), key=lambda k: -int(np.count_nonzero(images[k].opacities)))
-    futures = {k: _pool(workers).submit(_composite_alone, images[k], t_min) for k in order}
+    futures = {k: _pool(workers).submit(_composite_alone, k, images[k], t_min, finish) for k in order}
     return [futures[k].result() for k in range(len(images))]
 
 
