@@ -114,7 +114,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                          description="Run tests/test_stress.py (projection, rasterizer, IPM, losses, render at the "
                                      "scene edge; float32 finiteness and float64 agreement) with --examples per "
                                      "property instead of CI's default, counting cases and failures.")
-    _option(st, "--examples", 1000, 3, "hypothesis examples per property", int)
+    _option(st, "--examples", 500, 3, "hypothesis examples per property", int)
     st.add_argument("--tests", type=Path, default=None, help="test file (default tests/test_stress.py of the checkout)")
     _common(st)
 
