@@ -81,13 +81,15 @@ def time_alternating(variants: list[Variant], poses: list[list[float]], repeats:
 def table(variants: list[Variant], full: Variant) -> list[str]:
     """Markdown rows: count, mean cell subset, SH degree, latency, speed-up and PSNR loss vs the full bundle."""
     base_ms, lines = statistics.median(full.latency_ms), [
-        "| variant | Gaussians | served per cell (mean) | SH degree | four-camera render ms (median) | speed-up | "
-        "test PSNR dB | PSNR loss dB |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        "| variant | Gaussians | served per cell (mean) | SH degree (Gaussians per degree) | four-camera render ms "
+        "(median) | speed-up | test PSNR dB | PSNR loss dB |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for v in variants:
         b, ms = v.sim.bundle, statistics.median(v.latency_ms)
         report = b.meta.get("compaction", {})
         cell = f"{report['cell_gaussians_mean']:.0f}" if b.visibility is not None else "all"
-        lines.append(f"| {v.name} | {len(b.scene)} | {cell} | {b.scene.sh_degree} | {ms:.1f} | {base_ms / ms:.2f}x | "
+        degrees = "/".join(map(str, report.get("sh_degree_counts", [])))
+        lines.append(f"| {v.name} | {len(b.scene)} | {cell} | {b.scene.sh_degree} ({degrees or 'as trained'}) | "
+                     f"{ms:.1f} | {base_ms / ms:.2f}x | "
                      f"{v.psnr:.2f} | {full.psnr - v.psnr:.2f} |")
     return lines
 
@@ -113,15 +115,22 @@ def main() -> None:
     parser.add_argument("--sh-tolerance", type=float, default=0.01)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/RESULTS_compact.md"))
+    parser.add_argument("--weights", type=Path,
+                        help="measurement cache (torch file): read when it exists, else written after measuring")
     args = parser.parse_args()
 
     started = datetime.datetime.now(datetime.timezone.utc)
     load_start = os.getloadavg()
     full_bundle, reader = bundle_io.load(args.bundle), DatasetReader(args.dataset)
     base = CompactOptions(cell=args.cell, per_cell=args.per_cell, sh_tolerance=args.sh_tolerance)
-    t0, cpu0 = time.perf_counter(), time.process_time()
-    grid, weights = measure_bundle(full_bundle, base, progress=True)
-    measure_s, measure_cpu = time.perf_counter() - t0, time.process_time() - cpu0
+    if args.weights is not None and args.weights.is_file():
+        grid, weights, measure_s, measure_cpu = torch.load(args.weights, weights_only=False)
+    else:
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        grid, weights = measure_bundle(full_bundle, base, progress=True)
+        measure_s, measure_cpu = time.perf_counter() - t0, time.process_time() - cpu0
+        if args.weights is not None:
+            torch.save((grid, weights, measure_s, measure_cpu), args.weights)
 
     variants = [Variant("full (reference)", LocalSim(full_bundle, "full"), None)]
     for spec in args.variants.split(","):
@@ -141,7 +150,7 @@ def main() -> None:
         "# Scene compaction (`parksim compact`)", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
         f"--variants {args.variants} --cell {args.cell:g} --per-cell {args.per_cell} --sh-tolerance {args.sh_tolerance:g} "
-        f"--repeats {args.repeats}`", "",
+        f"--repeats {args.repeats}" + (f" --weights {args.weights}" if args.weights else "") + "`", "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
         f"{numba.get_num_threads()}, torch {torch.__version__}; started {started:%Y-%m-%dT%H:%M}Z; load average "
         f"{load_start[0]:.1f} at the start, {load_end[0]:.1f} at the end (shared machine: other jobs were running).", "",
