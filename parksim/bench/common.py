@@ -46,17 +46,21 @@ def set_threads(n: int) -> None:
     torch.set_num_threads(n)
 
 
-def time_medians(fns: Sequence[Callable[[], Any]], repeats: int, warmup: int = 1) -> list[Timing]:
-    """Median time of each closure, called in turn per repeat so a change of load hits all of them alike."""
-    for fn in fns:
-        for _ in range(warmup):
+def time_medians(fns: Sequence[Callable[[], Any]], repeats: int, warmup: int = 1,
+                 tick: Callable[[], Any] = lambda: None) -> list[Timing]:
+    """Median time of each closure, called in turn per round so a change of load hits all of them alike;
+    ``warmup`` untimed rounds first; ``tick`` is called after every round (progress)."""
+    for _ in range(warmup):
+        for fn in fns:
             fn()
+        tick()
     samples: list[list[tuple[float, float]]] = [[] for _ in fns]
     for _ in range(repeats):
         for fn, ts in zip(fns, samples):
             t0, c0 = time.perf_counter(), time.process_time()
             fn()
             ts.append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
+        tick()
     return [Timing(statistics.median(w for w, _ in ts), statistics.median(c for _, c in ts), repeats) for ts in samples]
 
 
