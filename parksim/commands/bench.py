@@ -151,6 +151,7 @@ def _resolve(args: argparse.Namespace) -> None:
         delattr(args, key)
     shown = {k: v for k, v in vars(args).items() if not k.startswith("_") and k not in ("command", "bench")}
     parts = [f"--{k.replace('_', '-')}" if v is True else
+             " ".join(f"--bundle {b}" for b in v) if k == "bundle" else   # the one repeatable option
              f"--{k.replace('_', '-')} {','.join(map(str, v)) if isinstance(v, list) else v}"
              for k, v in shown.items() if v not in (None, False, [])]
     args.command_line = " ".join(["parksim bench", args.bench, *parts])
