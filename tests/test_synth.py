@@ -12,6 +12,8 @@ import torch
 
 from parksim.data import DatasetReader
 from parksim.synth import SceneRenderer, generate, get_preset
+from parksim.synth.labels import _seen
+from parksim.synth.layout import Box
 from parksim.synth.raycast import FLOOR, BoxSet, box_id, trace_world
 from parksim.synth.shading import SensorOptions
 
@@ -73,6 +75,16 @@ def test_shapes_and_directions(renderer):
     assert {s.angle_deg for s in g.slots if s.kind == "slanted"} == {60.0, 120.0}
     shapes = [m.shape for m in g.marks]
     assert "T" in shapes and "L" in shapes
+
+
+def test_point_seen_by_a_third_of_the_blend_is_labelled():
+    """The BEV blends cameras by weight: paint seen clearly by cameras with 35 % of the weight still shows there
+    (beside the ego, the front or rear camera sees its own body), so the point is labelled; at 25 % it is not."""
+    wall = BoxSet.from_boxes([Box(1.0, 0.0, 0.0, 3.0, 0.2, 4.0, 0.0, "pillar")])  # hides the point from "a" only
+    point = np.array([2.0, 0.0, 0.0])
+    origins = {"a": np.array([0.0, 0.0, 1.0]), "b": np.array([2.0, 3.0, 1.0])}
+    assert _seen(point, origins, {"a": 0.65, "b": 0.35}, wall, 3.0)
+    assert not _seen(point, origins, {"a": 0.75, "b": 0.25}, wall, 3.0)
 
 
 def _visible(origin: np.ndarray, point: np.ndarray, boxes: BoxSet, height: float) -> bool:
