@@ -222,6 +222,7 @@ def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, ya
     from parksim.gaussians import GaussianScene
     from parksim.geometry import pose_from_xy_yaw
     from parksim.render import render
+    from parksim.render.rasterize import ALPHA_MAX
 
     lo, hi = torch.tensor(SCENE_BOX[0]), torch.tensor(SCENE_BOX[1])
     means = lo + torch.tensor([g[:3] for g in gs]) * (hi - lo)
@@ -241,15 +242,17 @@ def test_render_at_the_scene_edge_is_finite_with_finite_gradients(gs, fx, fy, ya
     (sum(img.sum() for img in out.images.values()) + out.bev.sum()).backward()
     for t in params:
         assert t.grad is None or torch.isfinite(t.grad).all()
-    # float64 agreement where the float32 render is defined (both limits found by `parksim bench stress`):
+    # float64 agreement where the float32 render is defined (the limits were found by `parksim bench stress`):
     # - the compositing order: Gaussians at the same distance from a camera (coincident ones) are blended in an
     #   unspecified order, which differs between float32 and float64 (1e-2 apart for two opaque ones);
+    # - the early stop: two splats at the ALPHA_MAX clamp leave exactly T_MIN, which float32 and float64 round
+    #   to opposite sides (as in the rasterizer test above; 5.5e-3 apart for two opaque Gaussians);
     # - EWA linearises the lens at the mean: for a Gaussian wider than its distance to a camera it is
     #   ill-conditioned, and float32 parts from float64 (0.6 % for sigma 55 m seen from 3 m).
     T_world_vehicle = pose_from_xy_yaw(x, y, yaw)
     centres = torch.stack([(T_world_vehicle @ c.T_vehicle_camera)[:3, 3] for c in tiny_rig.cameras.values()]).float()
     distance = torch.cdist(means.detach(), centres)
-    ordered = bool((distance.sort(dim=0).values.diff(dim=0) > 1e-3).all())
+    ordered = bool((distance.sort(dim=0).values.diff(dim=0) > 1e-3).all()) and int((opacities >= ALPHA_MAX).sum()) < 2
     linearisable = bool((log_scales.detach().max(dim=1).values.exp() < 0.5 * distance.min(dim=1).values).all())
     if ordered and (method == "ut" or linearisable):
         with torch.no_grad():
