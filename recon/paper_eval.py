@@ -24,7 +24,7 @@ from parksim.fileio import write_json
 from .bev_detection import DetectionScore, TestBEV, gt_bevs, rendered_bevs, score_detector
 from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
-from .detectors import DecodeOptions
+from .detectors import DecodeOptions, Detections
 from .evaluate import evaluate_views, summarize
 from .paper_tables import DETECTOR_TITLES, tables_markdown
 from .reconstruct import CONFIG_FILE
@@ -66,7 +66,8 @@ def _scores(score: DetectionScore) -> dict[str, Any]:
     return {"points": asdict(score.points), "slots": asdict(score.slots)}
 
 
-def _annotated(item: TestBEV, det: Any, title: str) -> np.ndarray:
+def _annotated(item: TestBEV, det: Detections, title: str) -> np.ndarray:
+    """The BEV as uint8 RGB with its labels, ``det`` and a caption."""
     img = np.ascontiguousarray((item.bev.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8))
     draw_labels(img, item.labels)
     draw_detections(img, det)
@@ -88,13 +89,13 @@ def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors
     shown = sorted(range(len(gt)), key=lambda i: (-len(gt[i].labels.slots), gt[i].frame))[:panel_frames]
     panels = {name: [[_annotated(gt[i], s.detections[i], f"GT f{gt[i].frame}")] for i in shown]
               for name, s in gt_scores.items()}
+    views = [(f, c) for f in frames for c in reader.rig.names]
     rows = []
     for scene_dir, label in runs:
         info = describe_run(scene_dir, label)
         bundle = load(scene_dir)
         response = CameraResponse(reader.rig, 0.0)
         response.load_dict(bundle.meta.get("camera_response", {}))
-        views = [(f, c) for f in frames for c in reader.rig.names]
         quality = summarize(evaluate_views(bundle.scene, reader, views, response, backend), reader.rig.names, frames)
         bevs = rendered_bevs(bundle.scene, reader, frames, response, backend)
         detection = {}

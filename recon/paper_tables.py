@@ -10,7 +10,7 @@ Rows are matched across scenes by label; a cell a scene lacks reads "n/a".
 
 from __future__ import annotations
 
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 __all__ = ["tables_markdown", "DETECTOR_TITLES"]
 
@@ -34,7 +34,8 @@ def _main(run: dict[str, Any]) -> bool:
     return run["variant"] in (None, "full")
 
 
-def _labels(results: list[dict[str, Any]], keep: Any = lambda run: True) -> list[str]:
+def _labels(results: list[dict[str, Any]], keep: Callable[[dict[str, Any]], bool]) -> list[str]:
+    """Labels of the runs ``keep`` selects, in order of first appearance over the scenes."""
     seen: dict[str, None] = {}
     for result in results:
         seen.update((run["label"], None) for run in result["runs"] if keep(run))
