@@ -199,3 +199,5 @@ def test_options_are_checked_before_measuring():
         CompactOptions(sh_tolerance=math.nan)
     with pytest.raises(ValueError, match="cell"):
         CompactOptions(cell=0.0)
+    with pytest.raises(ValueError, match="cell budget"):
+        CompactOptions(cell_budget=1.5)

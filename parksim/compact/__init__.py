@@ -38,7 +38,7 @@ class CompactOptions:
 
     def __post_init__(self) -> None:
         check_budget(self.budget)
-        check_budget(self.cell_budget)
+        check_budget(self.cell_budget, "cell budget")
         for name in ("min_weight", "sh_tolerance", "margin"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0):
                 raise ValueError(f"{name.replace('_', ' ')} must be a finite number >= 0, got {getattr(self, name)}")

@@ -18,12 +18,12 @@ from .poses import GridPoses
 __all__ = ["check_budget", "budget_count", "select", "sh_change_bound", "lower_sh", "visibility_grid"]
 
 
-def check_budget(budget: float) -> None:
-    """ValueError unless ``budget`` is a fraction in (0, 1] or a whole count above 1."""
+def check_budget(budget: float, name: str = "budget") -> None:
+    """ValueError (naming ``name``) unless ``budget`` is a fraction in (0, 1] or a whole count above 1."""
     if not (math.isfinite(budget) and budget > 0):
-        raise ValueError(f"budget must be a fraction in (0, 1] or a Gaussian count > 1, got {budget}")
+        raise ValueError(f"{name} must be a fraction in (0, 1] or a Gaussian count > 1, got {budget}")
     if budget > 1 and budget != int(budget):
-        raise ValueError(f"a budget above 1 is a Gaussian count and must be whole, got {budget}")
+        raise ValueError(f"a {name} above 1 is a Gaussian count and must be whole, got {budget}")
 
 
 def budget_count(budget: float, n: int) -> int:
