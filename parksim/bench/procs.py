@@ -53,11 +53,9 @@ def serve_bundle(bundle: Path, startup_s: float = 300.0) -> Iterator[Server]:
     try:
         deadline = time.monotonic() + startup_s
         while True:
-            try:
+            with contextlib.suppress(httpx.HTTPError):   # not listening yet
                 if httpx.get(f"{base}/healthz").status_code == 200:
                     break
-            except httpx.HTTPError:
-                pass
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"server for {bundle} did not start (exit code {proc.poll()})")
             time.sleep(0.5)
