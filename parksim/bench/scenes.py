@@ -10,9 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..gaussians import GaussianScene
-
-_SH_C0 = 0.28209479177387814
+from ..gaussians import SH_C0, GaussianScene
 
 
 def read_points(dataset: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -61,7 +59,7 @@ def garage_scene(dataset: Path, n: int, seed: int = 0, sh_degree: int = 3) -> Ga
     log_scales = np.log(np.concatenate([sigma, 0.1 * sigma.min(-1, keepdims=True)], -1))
     quats = quaternion_from_rotation(torch.from_numpy(np.stack([t1, t2, nrm], -1)))
     sh = 0.05 * rng.standard_normal((n, (sh_degree + 1) ** 2, 3))
-    sh[:, 0] = (rgb[pick] - 0.5) / _SH_C0
+    sh[:, 0] = (rgb[pick] - 0.5) / SH_C0
     opacity_logits = rng.normal(2.5, 1.5, n)
     means_t, quats_t, scales_t, opac_t, sh_t = (torch.as_tensor(a).to(torch.float32).contiguous()
                                                  for a in (means, quats, log_scales, opacity_logits, sh))

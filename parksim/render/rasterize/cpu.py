@@ -62,7 +62,8 @@ class Image(NamedTuple):
     height: int
 
 
-_POOL: ThreadPoolExecutor | None = None
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+"""The compositor's worker threads and how many there are."""
 _POOL_LOCK = threading.Lock()
 
 
@@ -70,9 +71,9 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     """The compositor's worker threads (made once, grown when more are asked for)."""
     global _POOL
     with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers < workers:
-            _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="parksim-composite")
-        return _POOL
+        if _POOL is None or _POOL[0] < workers:
+            _POOL = (workers, ThreadPoolExecutor(max_workers=workers, thread_name_prefix="parksim-composite"))
+        return _POOL[1]
 
 
 Finish = Callable[[int, np.ndarray, np.ndarray, np.ndarray], R]
