@@ -38,7 +38,9 @@ CHUNK = 256
 
 FASTMATH = {"contract", "arcp", "nsz", "reassoc"}
 """LLVM fast-math flags of the per-chunk loops: FMA contraction, reciprocals and reassociation (~1.6x faster
-here), but not ``nnan``/``ninf``, so the kernels' NaN guards and ``isfinite`` tests keep their meaning."""
+here), but not ``nnan``/``ninf``, so the kernels' NaN guards and ``isfinite`` tests keep their meaning.
+The loops also use numpy's error model: a division by zero gives inf/NaN (which the guards handle) instead of
+a Python exception, so divisions carry no test-and-raise branch and loops over points can vectorise."""
 
 
 _ATAN_P = (0.9999999999999895, -0.33333333331568515, 0.19999999682583666, -0.14285693667669663,
@@ -49,23 +51,23 @@ _TAN_PI_8 = 0.41421356237309503
 
 @numba.njit(inline="always", cache=True)
 def _atan2(r: float, z: float) -> float:
-    """``atan2(r, z)`` for ``r >= 0``, ``(r, z) != 0``, within 2e-14 rad: octant reduction and ``_ATAN_P``.
+    """``atan2(r, z)`` for ``r >= 0`` within 2e-14 rad (0 at the origin): octant reduction and ``_ATAN_P``.
 
     About four times cheaper than libm's atan2 here, and every sigma point of every Gaussian calls it.
+    Selects only, no branches, so a loop over many points vectorises.
     """
     az = abs(z)
     swap = r > az
-    t = az / r if swap else (r / az if az > 0 else 0.0)
+    den = r if swap else az
+    t = (az if swap else r) / (den if den > 0 else 1.0)
     big = t > _TAN_PI_8
-    if big:
-        t = (t - 1.0) / (t + 1.0)
+    t = (t - 1.0) / (t + 1.0) if big else t
     t2 = t * t
     p = _ATAN_P[8]
     for k in range(7, -1, -1):
         p = p * t2 + _ATAN_P[k]
     a = t * p + (0.25 * math.pi if big else 0.0)
-    if swap:
-        a = 0.5 * math.pi - a
+    a = 0.5 * math.pi - a if swap else a
     return math.pi - a if z < 0 else a
 
 
@@ -90,36 +92,59 @@ def _project(model: int, lens: np.ndarray, axis_eps: float, tiny: float, x: floa
 
     ``u = fx s x + cx`` with the radial scale ``s = rho(theta) / r``; the camera centre maps to the
     principal point, points within ``axis_eps`` of the axis use ``s = q(0) / |p|`` (front) or the rim
-    (back), points past ``theta_max`` land on the rim in their own direction.
+    (back), points past ``theta_max`` land on the rim in their own direction. Every case is computed
+    (with safe denominators) and picked by selects, so a loop of projections vectorises.
     """
     n2 = x * x + y * y + z * z
-    if n2 <= tiny:
-        return lens[CX], lens[CY], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     r2 = x * x + y * y
-    sx = sy = sz = 0.0
-    if r2 <= (axis_eps * axis_eps) * n2:
-        if z > 0:
-            n = math.sqrt(n2)
-            s = lens[Q0] / n
-            k = -s / n2
-            sx, sy, sz = k * x, k * y, k * z
-        else:
-            s = lens[RHO_MAX]
-    else:
-        r = math.sqrt(r2)
-        theta = _atan2(r, z)
-        if theta > lens[THETA_MAX]:
-            s = lens[RHO_MAX] / r
-            sr = -s / r
-        else:
-            rho, drho = _rho(model, lens, theta)
-            s = rho / r
-            sr = (drho * z / n2 - s) / r
-            sz = -drho / n2
-        sx, sy = sr * x / r, sr * y / r
+    n2s = n2 if n2 > 0 else 1.0
+    r = math.sqrt(r2)
+    rs = r if r > 0 else 1.0
+    theta = _atan2(r, z)
+    rim = theta > lens[THETA_MAX]
+    rho, drho = _rho(model, lens, theta)
+    s_side = (lens[RHO_MAX] if rim else rho) / rs        # off the axis
+    sr = (-s_side if rim else drho * z / n2s - s_side) / rs
+    s_front = lens[Q0] / math.sqrt(n2s)                  # on the axis, in front
+    k = -s_front / n2s
+    axis, front = r2 <= (axis_eps * axis_eps) * n2, z > 0
+    s = (s_front if front else lens[RHO_MAX]) if axis else s_side
+    sx = (k * x if front else 0.0) if axis else sr * x / rs
+    sy = (k * y if front else 0.0) if axis else sr * y / rs
+    sz = (k * z if front else 0.0) if axis else (0.0 if rim else -drho / n2s)
     fx, fy = lens[FX], lens[FY]
+    if n2 <= tiny:   # the camera centre: a select too once inlined into a loop
+        return lens[CX], lens[CY], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     return (fx * s * x + lens[CX], fy * s * y + lens[CY],
             fx * (s + x * sx), fx * x * sy, fx * x * sz, fy * y * sx, fy * (s + y * sy), fy * y * sz)
+
+
+@numba.njit(inline="always", cache=True)
+def _project_loop(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray, uv: np.ndarray,
+                  n: int) -> None:
+    """``uv[:, :n]``: pixels of the camera-frame points ``pts[:, :n]`` (one branch-free loop: it vectorises).
+
+    The lens slots are read into a tuple first: loads from the array could alias ``uv`` and would keep
+    LLVM from vectorising.
+    """
+    values = (lens[FX], lens[FY], lens[CX], lens[CY], lens[THETA_MAX], lens[RHO_MAX], lens[Q0], lens[K1],
+              lens[K1 + 1], lens[K1 + 2], lens[K1 + 3])
+    for i in range(n):
+        out = _project(model, values, axis_eps, tiny, pts[0, i], pts[1, i], pts[2, i])
+        uv[0, i] = out[0]
+        uv[1, i] = out[1]
+
+
+@numba.njit(inline="always", cache=True)
+def project_batch(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray, uv: np.ndarray,
+                  n: int) -> None:
+    """``_project_loop`` with the lens model a constant in each branch, so the model test leaves the loop."""
+    if model == OPENCV_FISHEYE:
+        _project_loop(OPENCV_FISHEYE, lens, axis_eps, tiny, pts, uv, n)
+    elif model == RADIAL_POLY:
+        _project_loop(RADIAL_POLY, lens, axis_eps, tiny, pts, uv, n)
+    else:
+        _project_loop(PINHOLE, lens, axis_eps, tiny, pts, uv, n)
 
 
 @numba.njit(inline="always", cache=True)
@@ -224,10 +249,14 @@ def _adaptive_weight(opts: np.ndarray, x: float, y: float, z: float, sigma: floa
 @numba.njit(inline="always", cache=True)
 def _ut(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
         L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
-        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool
+        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool, projected: bool = False
         ) -> tuple[bool, float, float, float, float, float]:
-    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``."""
-    _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
+    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``.
+
+    ``projected``: ``uv7`` already holds the 7 sigma points' pixels (projected in a batch by the caller).
+    """
+    if not projected:
+        _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
     _moments(uv7, wm7, wc7, mom[0])
     aw = _adaptive_weight(opts, x, y, z, sigma)
     if aw[0]:
@@ -394,14 +423,14 @@ def cull(means: np.ndarray, log_scales: np.ndarray, lens: np.ndarray, opts: np.n
 @numba.njit(inline="always", cache=True)
 def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
                L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
-               wm19: np.ndarray, wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray
-               ) -> tuple[float, float, float, float, float, float, float, bool]:
+               wm19: np.ndarray, wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray,
+               projected: bool = False) -> tuple[float, float, float, float, float, float, float, bool]:
     """One camera-frame Gaussian's image footprint: ``(u, v, a, b, c, depth, radius, valid)``.
 
     UT moments, NaN guard, blur and eigenvalue clamp; ``(a, b, c)`` is the clamped 2D covariance,
-    ``valid`` whether it is finite and its 3-sigma box overlaps the image.
+    ``valid`` whether it is finite and its 3-sigma box overlaps the image. ``projected`` as ``_ut``.
     """
-    _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, False)
+    _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, False, projected)
     mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
     finite = np.isfinite(mean_u) and np.isfinite(mean_v) and np.isfinite(a) and np.isfinite(b) \
         and np.isfinite(c)
@@ -416,7 +445,7 @@ def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: floa
     return mean_u, mean_v, a, b, c, math.sqrt(x * x + y * y + z * z), radius, valid
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def _forward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
                    log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
                    z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
@@ -456,7 +485,7 @@ def forward(index: np.ndarray, means: np.ndarray, quats: np.ndarray, log_scales:
                        out_radii, out_valid)
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
                     log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
                     z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,

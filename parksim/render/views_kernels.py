@@ -41,49 +41,72 @@ def _sh_basis(degree: int, x: float, y: float, z: float, basis: np.ndarray) -> i
     return 16
 
 
-@numba.njit(cache=True, fastmath=pk.FASTMATH)
+@numba.njit(cache=True, fastmath=pk.FASTMATH, error_model="numpy")
 def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray,
                  opacities: np.ndarray, sh: np.ndarray, sh_degree: int, rots: np.ndarray, trans: np.ndarray,
                  centres: np.ndarray, models: np.ndarray, lenses: np.ndarray, opts: np.ndarray, z7: np.ndarray,
                  wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray, wc19: np.ndarray,
                  out_means: np.ndarray, out_conics: np.ndarray, out_colors: np.ndarray, out_opacities: np.ndarray,
                  out_depths: np.ndarray) -> None:
-    """``project_views`` for the Gaussians ``start:stop`` (one thread's chunk), all cameras."""
-    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
-    R, L, s, mom, basis = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5)), np.empty(16)
-    n_cams = rots.shape[0]
-    for g in range(start, stop):
-        mx, my, mz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        qw, qx, qy, qz, _ = pk._unit_quaternion(quats[g])
-        pk._rotation(qw, qx, qy, qz, R)
+    """``project_views`` for the Gaussians ``start:stop`` (one thread's chunk), all cameras.
+
+    Per camera: cull and gather the visible Gaussians, project all their 7-point sigma points in one
+    vectorised loop (``project_kernels.project_batch``), then finish each footprint and colour it.
+    """
+    m_max, n7 = stop - start, z7.shape[0]
+    uv7, uv19 = np.empty((n7, 8)), np.empty((z19.shape[0], 8))
+    mom, basis = np.empty((3, 5)), np.empty(16)
+    R, s = np.empty((m_max, 3, 3)), np.empty((m_max, 3))     # per Gaussian, shared by the cameras
+    vis, xyz, L = np.empty(m_max, np.int64), np.empty((m_max, 3)), np.empty((m_max, 3, 3))  # per camera
+    pts, uv = np.empty((3, n7 * m_max)), np.empty((2, n7 * m_max))
+    for k in range(m_max):
+        qw, qx, qy, qz, _ = pk._unit_quaternion(quats[start + k])
+        pk._rotation(qw, qx, qy, qz, R[k])
         for j in range(3):
-            s[j] = math.exp(float(log_scales[g, j]))
-        sigma = max(s[0], s[1], s[2])
-        n_basis = -1
-        for cam in range(n_cams):
+            s[k, j] = math.exp(float(log_scales[start + k, j]))
+    for cam in range(rots.shape[0]):
+        rot, lens, opt = rots[cam], lenses[cam], opts[cam]
+        m = 0
+        for k in range(m_max):
+            g = start + k
             out_opacities[cam, g] = 0.0
-            rot, lens, opt = rots[cam], lenses[cam], opts[cam]
+            mx, my, mz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
             x = rot[0, 0] * mx + rot[0, 1] * my + rot[0, 2] * mz + trans[cam, 0]
             y = rot[1, 0] * mx + rot[1, 1] * my + rot[1, 2] * mz + trans[cam, 1]
             z = rot[2, 0] * mx + rot[2, 1] * my + rot[2, 2] * mz + trans[cam, 2]
             if not pk._visible(lens, opt, x, y, z, log_scales[g]):
                 continue
-            pk._rotate_scaled(rot, R, s, L)
-            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, sigma, L, z7, wm7, wc7,
-                                                           z19, wm19, wc19, uv7, uv19, mom)
+            vis[m] = k
+            xyz[m, 0], xyz[m, 1], xyz[m, 2] = x, y, z
+            pk._rotate_scaled(rot, R[k], s[k], L[m])
+            m += 1
+        for p in range(n7):   # point-major: sigma point p of visible Gaussian i sits at p * m + i
+            z0, z1, z2 = z7[p, 0], z7[p, 1], z7[p, 2]
+            for i in range(m):
+                for d in range(3):
+                    pts[d, p * m + i] = xyz[i, d] + (L[i, d, 0] * z0 + L[i, d, 1] * z1 + L[i, d, 2] * z2)
+        pk.project_batch(models[cam], lens, opt[pk.AXIS_EPS], opt[pk.TINY], pts, uv, n7 * m)
+        for i in range(m):
+            k = vis[i]
+            g = start + k
+            for p in range(n7):
+                uv7[p, 0], uv7[p, 1] = uv[0, p * m + i], uv[1, p * m + i]
+            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, max(s[k, 0], s[k, 1], s[k, 2]),
+                                                           L[i], z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, True)
             if not valid:
                 continue
             det = a * c - b * b
             out_means[cam, g, 0], out_means[cam, g, 1] = u, v
             out_conics[cam, g, 0], out_conics[cam, g, 1], out_conics[cam, g, 2] = c / det, -b / det, a / det
             out_depths[cam, g] = depth
-            dx, dy, dz = mx - centres[cam, 0], my - centres[cam, 1], mz - centres[cam, 2]
+            dx, dy, dz = means[g, 0] - centres[cam, 0], means[g, 1] - centres[cam, 1], means[g, 2] - centres[cam, 2]
             inv = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # a Gaussian at the camera: any direction
             n_basis = _sh_basis(sh_degree, dx * inv, dy * inv, dz * inv, basis)
             for ch in range(3):
                 acc = 0.0
-                for k in range(n_basis):
-                    acc += basis[k] * sh[g, k, ch]
+                for j in range(n_basis):
+                    acc += basis[j] * sh[g, j, ch]
                 out_colors[cam, g, ch] = max(acc + 0.5, 0.0)
             out_opacities[cam, g] = opacities[g]
 

@@ -57,15 +57,17 @@ def _params(means, conics, opacities, g) -> tuple[float, float, float, float, fl
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _count_and_pack(means, conics, colors, opacities, depths, width, height, packed, counts):
-    """Per Gaussian: the packed row and the number of tiles its ellipse touches (0 if culled)."""
+def _count_and_pack(means, conics, colors, opacities, depths, width, height, tiles_x, packed, counts, first_tile):
+    """Per Gaussian: the packed row, the number of tiles its ellipse touches (0 if culled) and the first one."""
     for g in numba.prange(means.shape[0]):
-        mx, my, a, b, c, q = _params(means, conics, opacities, g)
-        o = np.float64(opacities[g])
-        det = a * c - b * b
         counts[g] = 0
+        o = np.float64(opacities[g])
+        if not o >= ALPHA_MIN:   # most rows in a multi-camera batch: not drawn in this image
+            continue
+        mx, my, a, b, c, q = _params(means, conics, opacities, g)
+        det = a * c - b * b
         finite = np.isfinite(det) and np.isfinite(o) and np.isfinite(mx) and np.isfinite(my)
-        if not (finite and a > 0.0 and det > 0.0 and o >= ALPHA_MIN):
+        if not (finite and a > 0.0 and det > 0.0):
             continue
         h = half_height(a, b, c, q)
         py_lo, py_hi = pixel_range(my, -h, h, 0, height - 1)
@@ -73,6 +75,8 @@ def _count_and_pack(means, conics, colors, opacities, depths, width, height, pac
         if py_lo <= py_hi:
             for ty in range(py_lo // TILE, py_hi // TILE + 1):
                 tx_lo, tx_hi = _tile_row_cols(mx, my, a, b, c, q, ty, width, height)
+                if n == 0 and tx_lo <= tx_hi:
+                    first_tile[g] = ty * tiles_x + tx_lo
                 n += max(0, tx_hi - tx_lo + 1)
         counts[g] = n
         row = packed[g]
@@ -82,10 +86,12 @@ def _count_and_pack(means, conics, colors, opacities, depths, width, height, pac
 
 
 @numba.njit(parallel=True, nogil=True, cache=True)
-def _fill_tiles(starts, means, conics, opacities, width, height, tiles_x, tile_of_slot):
+def _fill_tiles(starts, means, conics, opacities, width, height, tiles_x, first_tile, tile_of_slot):
     """Write the tile id of every (Gaussian, tile) intersection into the Gaussian's slots."""
     for g in numba.prange(means.shape[0]):
-        if starts[g] == starts[g + 1]:
+        if starts[g + 1] - starts[g] <= 1:   # none, or the one tile the count found (most Gaussians)
+            if starts[g + 1] > starts[g]:
+                tile_of_slot[starts[g]] = first_tile[g]
             continue
         mx, my, a, b, c, q = _params(means, conics, opacities, g)
         h = half_height(a, b, c, q)
@@ -147,11 +153,12 @@ def bin_gaussians(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, o
     m = means2d.shape[0]
     packed = np.empty((m, PACKED), np.float32)
     counts = np.empty(m, np.int64)
-    _count_and_pack(means2d, conics, colors, opacities, depths, width, height, packed, counts)
+    first_tile = np.empty(m, np.int32)
+    _count_and_pack(means2d, conics, colors, opacities, depths, width, height, tiles_x, packed, counts, first_tile)
     starts = np.zeros(m + 1, np.int64)
     np.cumsum(counts, out=starts[1:])
     tile_of_slot = np.empty(starts[-1], np.int32)
-    _fill_tiles(starts, means2d, conics, opacities, width, height, tiles_x, tile_of_slot)
+    _fill_tiles(starts, means2d, conics, opacities, width, height, tiles_x, first_tile, tile_of_slot)
     order = _depth_order(depths, counts)
     offsets = np.zeros(tiles_x * tiles_y + 1, np.int64)
     gauss_ids = np.empty(starts[-1], np.int32)
