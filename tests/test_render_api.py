@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import torch
@@ -175,3 +176,24 @@ def test_one_pass_inference_hard_scene_stays_finite():
     out = render(scene, tiny_rig(), (0.0, 0.0, 0.0), bev=True)
     for t in [*out.images.values(), *out.alpha.values(), *out.depth.values(), out.bev]:
         assert torch.isfinite(t).all()
+
+
+def test_inference_scratch_memory_never_leaks_into_results():
+    """The inference path reuses per-thread scratch memory: earlier results must stay intact, and renders on
+    several threads at once must equal the same renders one after another."""
+    rig, scene = tiny_rig(64, 48), ground_scene(40)
+    poses = [(0.0, 0.0, 0.0), (0.8, -0.4, 0.5), (-0.5, 0.3, -0.7), (0.2, 0.6, 2.0)]
+    with torch.no_grad():
+        first = [render(scene, rig, p, bev=True) for p in poses]
+        kept = [{k: v.clone() for k, v in r.images.items()} for r in first]
+        again = render(scene, rig, poses[1], bev=True)                  # writes over the scratch once more
+        for r, copy in zip(first, kept):
+            assert all(torch.equal(r.images[k], copy[k]) for k in copy)
+        assert all(torch.equal(again.images[k], first[1].images[k]) for k in rig.names)
+        assert not torch.equal(first[0].images["front"], first[1].images["front"])
+        with ThreadPoolExecutor(max_workers=4) as pool:
+            parallel = list(pool.map(lambda p: render(scene, rig, p, bev=True), poses * 3))
+    for r, ref in zip(parallel, first * 3):
+        assert all(torch.equal(r.images[k], ref.images[k]) and torch.equal(r.depth[k], ref.depth[k])
+                   for k in rig.names)
+        assert torch.equal(r.bev, ref.bev)

@@ -126,10 +126,13 @@ def _finish(image: Tensor, alpha: Tensor, depth_sum: Tensor, lens: Tensor, backg
 def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_cameras: Sequence[Tensor],
                      cfgs: Sequence[FusedUTConfig], lenses: Sequence[Tensor], background: Tensor
                      ) -> list[tuple[Tensor, Tensor, Tensor]]:
-    """Inference path: each camera's ``(image, alpha, depth)`` from one projection pass and the CPU compositor."""
+    """Inference path: each camera's ``(image, alpha, depth)`` from one projection pass and the CPU compositor.
+
+    Projected rows and compositor planes are scratch memory reused by the next render; ``finish`` copies.
+    """
     proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
                                scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],
-                               [cam.model for cam in cams], cfgs)
+                               [cam.model for cam in cams], cfgs, reuse=True)
     images = [Image(proj.means2d[k], proj.conics[k], proj.colors[k], proj.opacities[k], proj.depths[k],
                     cam.model.width, cam.model.height) for k, cam in enumerate(cams)]
     bg = background.to(torch.float32)

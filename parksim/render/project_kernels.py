@@ -220,7 +220,7 @@ def _moments(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, mom: np.ndarray) -
     mom[0], mom[1], mom[2], mom[3], mom[4] = u0 + mu, v0 + mv, a, b, c
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always", cache=True)
 def _adaptive_weight(opts: np.ndarray, x: float, y: float, z: float, sigma: float
                      ) -> tuple[bool, float, float, float, float, float]:
     """``(rich, w, dw/dx, dw/dy, dw/dz, dw/dsigma)`` of the blend into the fifth-degree set."""
