@@ -4,7 +4,11 @@ Ground truth comes from analytic ray casting (floor, ceiling, boxes) through the
 full-sphere fisheye model, with 2x2 supersampling; no Gaussians are involved.
 """
 
-from .generate import GENERATOR_VERSION, SceneRenderer, generate, scene_map
-from .presets import PRESETS, ScenePreset, get_preset
+from ..kernel_cache import configure as _configure_kernel_cache
+
+_configure_kernel_cache()  # before the kernel modules: their cache must match this source
+
+from .generate import GENERATOR_VERSION, SceneRenderer, generate, scene_map  # noqa: E402
+from .presets import PRESETS, ScenePreset, get_preset  # noqa: E402
 
 __all__ = ["generate", "SceneRenderer", "scene_map", "PRESETS", "ScenePreset", "get_preset", "GENERATOR_VERSION"]

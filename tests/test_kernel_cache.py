@@ -1,0 +1,48 @@
+"""The numba cache folder follows the kernels' whole source, so editing an inlined helper never runs stale code."""
+
+from __future__ import annotations
+
+import numba
+import pytest
+
+from parksim import kernel_cache
+
+
+@pytest.fixture
+def tree(tmp_path, monkeypatch):
+    """A stand-in package root with a kernel package, a helper package and a module; numba's setting restored."""
+    for rel in ("render/kernels.py", "render/lens/helpers.py", "synth/raycast.py", "gaussians.py", "cli.py"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text(f"# {rel}\n")
+    monkeypatch.setattr(kernel_cache, "_ROOT", tmp_path)
+    monkeypatch.setattr(numba.config, "CACHE_DIR", numba.config.CACHE_DIR)
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    kernel_cache.configure.cache_clear()
+    yield tmp_path
+    kernel_cache.configure.cache_clear()
+
+
+def test_hash_follows_every_kernel_source_but_not_other_modules(tree):
+    base = kernel_cache.source_hash()
+    (tree / "cli.py").write_text("# edited, not kernel source\n")
+    assert kernel_cache.source_hash() == base
+    for rel in ("render/lens/helpers.py", "synth/raycast.py", "gaussians.py"):
+        (tree / rel).write_text((tree / rel).read_text() + "X = 1\n")
+        changed = kernel_cache.source_hash()
+        assert changed != base, rel
+        base = changed
+
+
+def test_configure_uses_a_folder_per_source_and_drops_stale_ones(tree):
+    stale = tree / "__pycache__" / "numba-0000000000000000"
+    stale.mkdir(parents=True)
+    kernel_cache.configure()
+    expected = tree / "__pycache__" / f"numba-{kernel_cache.source_hash()}"
+    assert numba.config.CACHE_DIR == str(expected) and not stale.exists()
+
+
+def test_a_users_numba_cache_dir_wins(tree, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tree / "mine"))
+    before = numba.config.CACHE_DIR
+    kernel_cache.configure()
+    assert numba.config.CACHE_DIR == before and not (tree / "__pycache__").exists()
