@@ -28,6 +28,7 @@ from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
 from .rasterize.cpu import Image, composite_many
+from .scratch import thread_scratch
 from .sh import eval_sh
 
 __all__ = ["render", "RenderResult", "bev_ipm"]
@@ -132,7 +133,7 @@ def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_ca
     """
     proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
                                scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],
-                               [cam.model for cam in cams], cfgs, reuse=True)
+                               [cam.model for cam in cams], cfgs, alloc=thread_scratch())
     images = [Image(proj.means2d[k], proj.conics[k], proj.colors[k], proj.opacities[k], proj.depths[k],
                     cam.model.width, cam.model.height) for k, cam in enumerate(cams)]
     bg = background.to(torch.float32)

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
 from . import project_kernels as pk
-from .scratch import allocator
+from .scratch import Allocator, fresh
 from .views_kernels import project_views
 
 __all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "project_views_fused", "ViewsProjected",
@@ -189,12 +189,12 @@ class ViewsProjected(NamedTuple):
 
 def project_views_fused(means: Tensor, quats: Tensor, log_scales: Tensor, opacities: Tensor, sh: Tensor,
                         sh_degree: int, T_camera_world: Sequence[Tensor], cameras: Sequence[CameraModel],
-                        cfgs: Sequence[FusedUTConfig], reuse: bool = False) -> ViewsProjected:
+                        cfgs: Sequence[FusedUTConfig], alloc: Allocator = fresh) -> ViewsProjected:
     """Cull, UT-project and SH-colour world Gaussians into every camera in one kernel pass (no autograd).
 
     ``T_camera_world[c]`` (4x4) places camera ``c``; ``cfgs[c]`` holds its UT rules and limits. Each
     Gaussian's rotation and scales are read once for all cameras, and only drawn Gaussians are coloured.
-    ``reuse``: the rows live in this thread's scratch memory, valid until it projects again.
+    ``alloc`` gives the output rows (new arrays by default; see ``parksim.render.scratch``).
     """
     n, c = means.shape[0], len(cameras)
     T = np.stack([np.asarray(t.detach().to(torch.float64).numpy()) for t in T_camera_world])
@@ -203,8 +203,7 @@ def project_views_fused(means: Tensor, quats: Tensor, log_scales: Tensor, opacit
     models = np.array([_MODEL_IDS[type(cam)] for cam in cameras], dtype=np.int64)
     lenses = np.stack([_lens(cam) for cam in cameras])
     opts = np.stack([_opts(cfg, cam, means.dtype) for cfg, cam in zip(cfgs, cameras)])
-    new = allocator(reuse)
-    out = ViewsProjected(*(new(f"views.{name}", (c, n, *tail), np.float32)
+    out = ViewsProjected(*(alloc(f"views.{name}", (c, n, *tail), np.float32)
                            for name, tail in zip(ViewsProjected._fields, ((2,), (3,), (3,), (), ()))))
     with keep_torch_threads():
         project_views(_np(means), _np(quats), _np(log_scales), _np(opacities), _np(sh), sh_degree, rots, trans,

@@ -1,4 +1,4 @@
-"""Per-thread scratch arrays for the inference path, kept between renders.
+"""Reusable scratch arrays for the inference path, kept by the rendering thread between renders.
 
 A 4-camera frame needs ~150 MB of temporaries (projected rows, tile bins, compositor planes). Fresh
 allocations of that size come from the OS page by page on each frame (glibc maps and unmaps them), which
@@ -13,29 +13,34 @@ from collections.abc import Callable
 
 import numpy as np
 
+Allocator = Callable[[str, tuple[int, ...], "np.dtype | type"], np.ndarray]
+"""``alloc(name, shape, dtype)``: an uninitialised C-contiguous array for the temporary called ``name``."""
+
 _LOCAL = threading.local()
+"""Per-thread ``buffers``: name -> the largest uint8 block asked for under that name."""
 
 
-def scratch(name: str, shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
-    """An uninitialised C-contiguous array owned by this thread under ``name``.
-
-    It stays valid until this thread asks for ``name`` again, so it is only for data that does not outlive
-    the call that asked for it. The buffer grows to the largest request and is kept for the thread's life.
-    """
-    dtype = np.dtype(dtype)
-    nbytes = math.prod(shape) * dtype.itemsize
-    buffers: dict[str, np.ndarray] = _LOCAL.__dict__.setdefault("buffers", {})
-    buf = buffers.get(name)
-    if buf is None or buf.nbytes < nbytes:
-        buf = buffers[name] = np.empty(nbytes, np.uint8)
-    return buf[:nbytes].view(dtype).reshape(shape)
-
-
-def _fresh(_name: str, shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
-    """A new uninitialised array (``scratch``'s signature, for callers that keep what they get)."""
+def fresh(_name: str, shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+    """A new array every call: for callers that keep what they get (e.g. bins saved for a backward pass)."""
     return np.empty(shape, dtype)
 
 
-def allocator(reuse: bool) -> Callable[[str, tuple[int, ...], np.dtype | type], np.ndarray]:
-    """``scratch`` when ``reuse``, else a function of the same signature that returns new arrays."""
-    return scratch if reuse else _fresh
+def thread_scratch() -> Allocator:
+    """Arrays from the calling thread's reusable buffers, one per name.
+
+    An array stays valid until the same thread hands out that name again, so it is only for data that does
+    not outlive the render that asked for it. Buffers grow to the largest request and are kept for the
+    thread's life: for four 640x480 cameras and 2e5 Gaussians, ~32 MB in the thread that calls ``render``
+    and ~30 MB in each compositor thread.
+    """
+    buffers: dict[str, np.ndarray] = _LOCAL.__dict__.setdefault("buffers", {})
+
+    def alloc(name: str, shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        nbytes = math.prod(shape) * dtype.itemsize
+        buf = buffers.get(name)
+        if buf is None or buf.nbytes < nbytes:
+            buf = buffers[name] = np.empty(nbytes, np.uint8)
+        return buf[:nbytes].view(dtype).reshape(shape)
+
+    return alloc

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from ..project_fast import keep_torch_threads
-from ..scratch import allocator
+from ..scratch import Allocator, fresh, thread_scratch
 from . import kernels
 from .constants import T_MIN
 from .tiles import TileBins, bin_gaussians
@@ -30,20 +30,19 @@ def _heaviest_first(bins: TileBins) -> np.ndarray:
 
 
 def composite(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opacities: np.ndarray,
-              depths: np.ndarray, width: int, height: int, t_min: float = T_MIN, reuse: bool = False
+              depths: np.ndarray, width: int, height: int, t_min: float = T_MIN, alloc: Allocator = fresh
               ) -> tuple[TileBins, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bin and composite float32 Gaussians: ``(bins, tile order, rgb, depth sum, final T, last index)``.
 
     Rows with opacity below ``ALPHA_MIN`` (or a non-positive-definite conic) are skipped and never read.
-    ``reuse``: everything returned lives in this thread's scratch memory, valid until it composites again.
+    ``alloc`` gives every returned array (new ones by default; see ``parksim.render.scratch``).
     """
-    new = allocator(reuse)
-    rgb = new("composite.rgb", (height, width, 3), np.float32)
-    depth = new("composite.depth", (height, width), np.float32)
-    t_final = new("composite.t_final", (height, width), np.float32)
-    last = new("composite.last", (height, width), np.int64)
+    rgb = alloc("composite.rgb", (height, width, 3), np.float32)
+    depth = alloc("composite.depth", (height, width), np.float32)
+    t_final = alloc("composite.t_final", (height, width), np.float32)
+    last = alloc("composite.last", (height, width), np.int64)
     with keep_torch_threads():
-        bins = bin_gaussians(means2d, conics, colors, opacities, depths, width, height, reuse)
+        bins = bin_gaussians(means2d, conics, colors, opacities, depths, width, height, alloc)
         order = _heaviest_first(bins)
         kernels.forward(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, order, numba.get_num_threads(),
                         width, height, rgb, depth, t_final, last, np.float32(t_min))
@@ -86,20 +85,21 @@ Finish = Callable[[int, np.ndarray, np.ndarray, np.ndarray], R]
 def _composite_alone(k: int, image: Image, t_min: float, finish: Finish) -> R:
     """Image ``k`` composited on this thread only (numba's thread count is per thread), then ``finish``-ed."""
     numba.set_num_threads(1)
-    return finish(k, *composite(*image, t_min, reuse=True)[2:5])
+    return finish(k, *composite(*image, t_min, thread_scratch())[2:5])
 
 
 def composite_many(images: Sequence[Image], finish: Finish, t_min: float = T_MIN) -> list[R]:
     """``finish(k, rgb, depth sum, final T)`` of several images, each composited whole on one of numba's threads.
 
     Binning, depth sorting and bucketing are serial per image, so on a few cores giving each image its own
-    core (largest first) keeps them all busy where splitting every image across cores would not; ``finish``
-    (e.g. masking, background) runs on the same thread, so it should release the GIL (numpy, torch). The
-    arrays ``finish`` gets are the thread's scratch memory (``reuse``): it must copy whatever it keeps.
+    core (largest first) keeps them all busy where splitting every image across cores would not (measured:
+    binning side by side, then each image's tiles over all cores, was no faster). ``finish`` (masking,
+    background) runs on the same thread, so it should release the GIL (numpy, torch). The arrays it gets
+    are that thread's scratch memory (``parksim.render.scratch``): it must copy whatever it keeps.
     """
     workers = min(numba.get_num_threads(), len(images))
     if workers <= 1:
-        return [finish(k, *composite(*image, t_min, reuse=True)[2:5]) for k, image in enumerate(images)]
+        return [finish(k, *composite(*image, t_min, thread_scratch())[2:5]) for k, image in enumerate(images)]
     order = sorted(range(len(images)), key=lambda k: -int(np.count_nonzero(images[k].opacities)))
     futures = {k: _pool(workers).submit(_composite_alone, k, images[k], t_min, finish) for k in order}
     return [futures[k].result() for k in range(len(images))]

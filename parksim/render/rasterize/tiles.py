@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from ..scratch import allocator
+from ..scratch import Allocator, fresh
 from .constants import ALPHA_MIN, TILE
 from .ellipse import half_height, pixel_range, threshold_q, x_span
 
@@ -148,30 +148,29 @@ def _depth_order(depths, counts) -> np.ndarray:
 
 
 def bin_gaussians(means2d: np.ndarray, conics: np.ndarray, colors: np.ndarray, opacities: np.ndarray,
-                  depths: np.ndarray, width: int, height: int, reuse: bool = False) -> TileBins:
+                  depths: np.ndarray, width: int, height: int, alloc: Allocator = fresh) -> TileBins:
     """Bin float32 Gaussians into 16x16 tiles; culled Gaussians (see reference.gaussian_is_drawable) get none.
 
-    ``reuse``: build the bins in this thread's scratch memory (``parksim.render.scratch``), valid until the
-    thread bins again; for callers that drop the bins before then (inference), not for a backward pass.
+    ``alloc`` gives the bins' arrays: new ones by default, or reused scratch memory (``parksim.render.scratch``)
+    for callers that drop the bins at once (inference), never for a backward pass.
     """
-    new = allocator(reuse)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     m = means2d.shape[0]
-    packed = new("bins.packed", (m, PACKED), np.float32)
-    counts = new("bins.counts", (m,), np.int64)
-    first_tile = new("bins.first_tile", (m,), np.int32)
+    packed = alloc("bins.packed", (m, PACKED), np.float32)
+    counts = alloc("bins.counts", (m,), np.int64)
+    first_tile = alloc("bins.first_tile", (m,), np.int32)
     _count_and_pack(means2d, conics, colors, opacities, depths, width, height, tiles_x, packed, counts, first_tile)
-    starts = new("bins.starts", (m + 1,), np.int64)
+    starts = alloc("bins.starts", (m + 1,), np.int64)
     starts[0] = 0
     np.cumsum(counts, out=starts[1:])
     n_isect = int(starts[-1])
-    tile_of_slot = new("bins.tile_of_slot", (n_isect,), np.int32)
+    tile_of_slot = alloc("bins.tile_of_slot", (n_isect,), np.int32)
     _fill_tiles(starts, means2d, conics, opacities, width, height, tiles_x, first_tile, tile_of_slot)
     order = _depth_order(depths, counts)
-    offsets = new("bins.offsets", (tiles_x * tiles_y + 1,), np.int64)
+    offsets = alloc("bins.offsets", (tiles_x * tiles_y + 1,), np.int64)
     offsets[:] = 0
-    gauss_ids = new("bins.gauss_ids", (n_isect,), np.int32)
-    slot_of = new("bins.slot_of", (n_isect,), np.int64)
+    gauss_ids = alloc("bins.gauss_ids", (n_isect,), np.int32)
+    slot_of = alloc("bins.slot_of", (n_isect,), np.int64)
     _bucket_by_tile(order, starts, tile_of_slot, tiles_x * tiles_y, offsets, gauss_ids, slot_of)
     if np.diff(offsets).max(initial=0) >= MAX_PER_TILE:
         raise ValueError(f"more than {MAX_PER_TILE} Gaussians in one tile")
