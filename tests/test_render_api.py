@@ -149,13 +149,16 @@ def test_one_pass_inference_matches_the_differentiable_path():
     scene = _sh3_scene(40, torch.float64)
     cams = [rig.cameras[n] for n in rig.names]
     assert api._fast_path(scene, pose, cams, "ut", "auto")
-    fast = render(scene, rig, pose, bev=True)
+    bg = (0.2, 0.5, 0.9)   # seen behind partly transparent pixels and outside the lens circle
+    fast = render(scene, rig, pose, bev=True, bg=bg)
     leaves = [t.clone().requires_grad_() for t in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
                                                    scene.sh)]
     grad_scene = GaussianScene(*leaves, sh_degree=3)
     assert not api._fast_path(grad_scene, pose, cams, "ut", "auto")
-    ref = render(grad_scene, rig, pose, bev=True)
+    ref = render(grad_scene, rig, pose, bev=True, bg=bg)
     assert fast.bev is not None and float(fast.alpha["front"].max()) > 0.5
+    partial = (fast.alpha["front"] > 0.01) & (fast.alpha["front"] < 0.99)
+    assert bool(partial.any()) and float(fast.alpha["front"].min()) == 0.0
     for name in rig.names:
         torch.testing.assert_close(fast.images[name], ref.images[name].detach(), atol=1e-5, rtol=0)
         torch.testing.assert_close(fast.alpha[name], ref.alpha[name].detach(), atol=1e-5, rtol=0)
@@ -163,7 +166,7 @@ def test_one_pass_inference_matches_the_differentiable_path():
     torch.testing.assert_close(fast.bev, ref.bev.detach(), atol=1e-5, rtol=0)
     with torch.no_grad():   # no_grad takes the one-pass kernel even for leaves that require grad
         assert api._fast_path(grad_scene, pose, cams, "ut", "auto")
-        torch.testing.assert_close(render(grad_scene, rig, pose).images["rear"], fast.images["rear"])
+        torch.testing.assert_close(render(grad_scene, rig, pose, bg=bg).images["rear"], fast.images["rear"])
 
 
 def test_one_pass_inference_hard_scene_stays_finite():

@@ -28,6 +28,7 @@ from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
 from .rasterize.cpu import Image, composite_many
+from .rasterize.kernels import finish_image
 from .scratch import thread_scratch
 from .sh import eval_sh
 
@@ -136,12 +137,12 @@ def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_ca
                                [cam.model for cam in cams], cfgs, alloc=thread_scratch())
     images = [Image(proj.means2d[k], proj.conics[k], proj.colors[k], proj.opacities[k], proj.depths[k],
                     cam.model.width, cam.model.height) for k, cam in enumerate(cams)]
-    bg = background.to(torch.float32)
+    bg = background.to(torch.float32).numpy()
 
     def finish(k: int, rgb: np.ndarray, depth_sum: np.ndarray, t_final: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
-        t = torch.from_numpy(t_final)
-        image = torch.from_numpy(rgb).addcmul_(t.unsqueeze(-1), bg)
-        out = _finish(image, 1.0 - t, torch.from_numpy(depth_sum), lenses[k], bg)
+        out = tuple(torch.empty(shape, dtype=torch.float32) for shape in (rgb.shape, t_final.shape, t_final.shape))
+        finish_image(rgb, depth_sum, t_final, lenses[k].numpy(), bg, np.float32(_MIN_ALPHA_FOR_DEPTH),
+                     *(x.numpy() for x in out))
         return tuple(x.to(scene.means.dtype) for x in out)
 
     return composite_many(images, finish)

@@ -141,6 +141,29 @@ def forward(offsets, gauss_ids, packed, tiles_x, tile_order, n_workers, width, h
                           row_live, rgb_out, depth_out, t_out, last_out)
 
 
+@numba.njit(nogil=True, error_model="numpy", cache=True)
+def finish_image(rgb, depth_sum, t_final, lens, bg, min_alpha, out_rgb, out_alpha, out_depth):
+    """One pass from compositor planes to a camera image (no autograd; ``render.api._finish`` is the reference).
+
+    Inside the lens circle: colour plus the background behind the final transmittance, alpha = 1 - T, depth
+    normalised by alpha where alpha > min_alpha (else 0); outside it: background, alpha 0, depth 0.
+    """
+    for y in range(rgb.shape[0]):
+        for x in range(rgb.shape[1]):
+            if lens[y, x]:
+                t = t_final[y, x]
+                alpha = np.float32(1.0) - t
+                for ch in range(3):
+                    out_rgb[y, x, ch] = rgb[y, x, ch] + t * bg[ch]
+                out_alpha[y, x] = alpha
+                out_depth[y, x] = depth_sum[y, x] / alpha if alpha > min_alpha else np.float32(0.0)
+            else:
+                for ch in range(3):
+                    out_rgb[y, x, ch] = bg[ch]
+                out_alpha[y, x] = 0.0
+                out_depth[y, x] = 0.0
+
+
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
 def _backward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank, sums):
     """Undo one Gaussian over the TILE pixels of a tile row (back to front); add its gradients into sums.
