@@ -12,12 +12,14 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .camera import pixel_grid
 from .geometry import invert_transform, transform_points
+from .ipm_kernels import blend_taps
 from .rig import BEVSpec, Rig
 
 __all__ = ["IPM"]
@@ -96,6 +98,7 @@ class IPM:
             grid = _to_grid(self.pixel_coords[n], rig.cameras[n].model.width, rig.cameras[n].model.height)
             self._taps[n] = (rows, grid.reshape(1, 1, -1, 2)[:, :, rows].to(dtype), self.weights[n].flatten()[rows])
         self._back: dict[str, tuple[Tensor, Tensor]] = {}
+        self._gather_taps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     @staticmethod
     def _weight(model, p_cam: Tensor, uv: Tensor, valid: Tensor, edge_px: float, falloff: float) -> Tensor:
@@ -121,8 +124,14 @@ class IPM:
                                  f"{model.width}x{model.height}")
 
     def __call__(self, images: Mapping[str, Tensor]) -> Tensor:
-        """Blend the cameras' images (HxWxC, HxW or BxHxWxC) into the BEV (same layout)."""
+        """Blend the cameras' images (HxWxC, HxW or BxHxWxC) into the BEV (same layout).
+
+        Differentiable; when no image needs a gradient, single float32 HxWxC images take a numba gather
+        (``ipm_kernels.blend_taps``) with the same taps and weights instead of one ``grid_sample`` per camera.
+        """
         self._check(images)
+        if self._gather_applies(images):
+            return self._gather(images)
         out = None
         for name in self.cameras:
             x, batched, squeeze_c = _as_nchw(images[name])
@@ -133,6 +142,44 @@ class IPM:
                 out = x.new_zeros(x.shape[0], x.shape[1], self.spec.height * self.spec.width)
             out = out.index_add(2, rows, sampled * weight.to(x.dtype))
         return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
+
+    def _gather_applies(self, images: Mapping[str, Tensor]) -> bool:
+        """Whether ``_gather`` serves this call: no gradient needed, each image one float32 HxWxC CPU tensor."""
+        chosen = [images[n] for n in self.cameras]
+        needs_grad = torch.is_grad_enabled() and any(img.requires_grad for img in chosen)
+        return not needs_grad and all(img.ndim == 3 and img.dtype == torch.float32 and img.device.type == "cpu"
+                                      for img in chosen)
+
+    def _gather(self, images: Mapping[str, Tensor]) -> Tensor:
+        """``__call__`` without autograd: per camera, the precomputed bilinear taps gathered and summed."""
+        channels = images[self.cameras[0]].shape[-1]
+        out = np.zeros((self.spec.height * self.spec.width, channels), np.float32)
+        for name in self.cameras:
+            rows, idx, w = self._bilinear_taps(name)
+            img = np.ascontiguousarray(images[name].detach().numpy()).reshape(-1, channels)
+            blend_taps(img, rows, idx, w, out)
+        return torch.from_numpy(out).unflatten(0, (self.spec.height, self.spec.width))
+
+    def _bilinear_taps(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(rows, idx [n, 4], w [n, 4])`` of camera ``name``: the neighbours ``grid_sample`` reads for each tap
+        (align_corners=True, zero padding) and their bilinear weights times the blend weight."""
+        if name not in self._gather_taps:
+            rows, grid, weight = self._taps[name]
+            model = self.rig.cameras[name].model
+            g = grid.reshape(-1, 2).to(torch.float32)
+            ix, iy = (g[:, 0] + 1) / 2 * (model.width - 1), (g[:, 1] + 1) / 2 * (model.height - 1)
+            x0, y0 = ix.floor(), iy.floor()
+            fx, fy = ix - x0, iy - y0
+            idx, w = [], []
+            corners = ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy))
+            for dx, dy, wt in corners:
+                x, y = x0 + dx, y0 + dy
+                inside = (x >= 0) & (x <= model.width - 1) & (y >= 0) & (y <= model.height - 1)
+                idx.append(torch.where(inside, y * model.width + x, 0).to(torch.int64))
+                w.append(torch.where(inside, wt * weight.to(torch.float32), 0.0))
+            self._gather_taps[name] = (rows.numpy().astype(np.int64), torch.stack(idx, -1).numpy(),
+                                       torch.stack(w, -1).numpy().astype(np.float32))
+        return self._gather_taps[name]
 
     def _back_grid(self, name: str) -> tuple[Tensor, Tensor]:
         """Per fisheye pixel: where its ray meets the ground in the BEV (grid) and whether it does."""

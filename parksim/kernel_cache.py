@@ -17,7 +17,7 @@ from pathlib import Path
 import numba
 
 _ROOT = Path(__file__).resolve().parent
-KERNEL_SOURCES = ("render", "synth", "gaussians.py")
+KERNEL_SOURCES = ("render", "synth", "gaussians.py", "ipm_kernels.py")
 """What the kernels and their inlined helpers are built from (packages or files under ``parksim/``)."""
 _PREFIX = "numba-"
 

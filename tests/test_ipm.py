@@ -148,3 +148,22 @@ def test_bad_inputs_give_clear_errors(rig, ipm):
         IPM(rig, cameras=["front", "top"])
     with pytest.raises(ValueError, match="BEV map is 3x3"):
         ipm.to_cameras(torch.zeros(3, 3))
+
+
+def test_inference_gather_equals_the_grid_sample_path(rig, ipm):
+    """Without gradients the BEV is a numba gather over precomputed taps; it must equal grid_sample's blend,
+    image borders (zero padding) included."""
+    g = torch.Generator().manual_seed(3)
+    for channels in (3, 1):
+        images = {n: torch.rand(72, 96, channels, generator=g) for n in rig.names}
+        assert ipm._gather_applies(images)
+        fast = ipm(images)
+        leaves = {n: img.clone().requires_grad_() for n, img in images.items()}
+        assert not ipm._gather_applies(leaves)
+        ref = ipm(leaves).detach()
+        assert fast.shape == ref.shape == (80, 80, channels)
+        torch.testing.assert_close(fast, ref, atol=2e-6, rtol=0)
+        assert float(fast.abs().max()) > 0.5
+        with torch.no_grad():                                   # no_grad takes the gather even for leaves
+            assert ipm._gather_applies(leaves)
+            torch.testing.assert_close(ipm(leaves), fast, atol=0, rtol=0)

@@ -10,8 +10,11 @@ from parksim import kernel_cache
 
 @pytest.fixture
 def tree(tmp_path, monkeypatch):
-    """A stand-in package root with a kernel package, a helper package and a module; numba's setting restored."""
-    for rel in ("render/kernels.py", "render/lens/helpers.py", "synth/raycast.py", "gaussians.py", "cli.py"):
+    """A stand-in package root with every kernel source (packages with nested helpers, modules) and another
+    module; numba's setting restored."""
+    kernel_files = [e if e.endswith(".py") else f"{e}/kernels.py" for e in kernel_cache.KERNEL_SOURCES]
+    nested = [f"{e}/lens/helpers.py" for e in kernel_cache.KERNEL_SOURCES if not e.endswith(".py")]
+    for rel in (*kernel_files, *nested, "cli.py"):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_text(f"# {rel}\n")
     monkeypatch.setattr(kernel_cache, "_ROOT", tmp_path)
@@ -26,7 +29,9 @@ def test_hash_follows_every_kernel_source_but_not_other_modules(tree):
     base = kernel_cache.source_hash()
     (tree / "cli.py").write_text("# edited, not kernel source\n")
     assert kernel_cache.source_hash() == base
-    for rel in ("render/lens/helpers.py", "synth/raycast.py", "gaussians.py"):
+    edits = [e for e in kernel_cache.KERNEL_SOURCES if e.endswith(".py")]
+    edits += [f"{e}/lens/helpers.py" for e in kernel_cache.KERNEL_SOURCES if not e.endswith(".py")]
+    for rel in edits:
         (tree / rel).write_text((tree / rel).read_text() + "X = 1\n")
         changed = kernel_cache.source_hash()
         assert changed != base, rel

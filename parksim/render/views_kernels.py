@@ -92,8 +92,9 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
             for p in range(n7):
                 uv7[p, 0], uv7[p, 1] = uv[0, p * m + i], uv[1, p * m + i]
             x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, max(s[k, 0], s[k, 1], s[k, 2]),
-                                                           L[i], z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, True)
+            sigma = max(s[k, 0], s[k, 1], s[k, 2])
+            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, sigma, L[i], z7, wm7,
+                                                           wc7, z19, wm19, wc19, uv7, uv19, mom, True)
             if not valid:
                 continue
             det = a * c - b * b
