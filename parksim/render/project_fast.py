@@ -197,6 +197,8 @@ def project_views_fused(means: Tensor, quats: Tensor, log_scales: Tensor, opacit
     ``alloc`` gives the output rows (new arrays by default; see ``parksim.render.scratch``).
     """
     n, c = means.shape[0], len(cameras)
+    if cfgs[0].unscented[0].shape[0] != pk.N_UT:
+        raise ValueError(f"project_views_fused: the UT set has {cfgs[0].unscented[0].shape[0]} points, not {pk.N_UT}")
     T = np.stack([np.asarray(t.detach().to(torch.float64).numpy()) for t in T_camera_world])
     rots, trans = np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3])
     centres = np.ascontiguousarray(-np.einsum("cji,cj->ci", rots, trans))   # -R^T t

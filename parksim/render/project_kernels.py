@@ -36,6 +36,9 @@ N_ROT_GRAD = 9
 CHUNK = 256
 """Gaussians per parallel work item (one scratch allocation each)."""
 
+N_UT = 7
+"""Points of the 3D unscented transform's set (2n + 1); the inference kernel's loops are unrolled for it."""
+
 FASTMATH = {"contract", "arcp", "nsz", "reassoc"}
 """LLVM fast-math flags of the per-chunk loops: FMA contraction, reciprocals and reassociation (~1.6x faster
 here), but not ``nnan``/``ninf``, so the kernels' NaN guards and ``isfinite`` tests keep their meaning.
@@ -204,20 +207,25 @@ def _sigma_points(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: f
 
 
 @numba.njit(inline="always", cache=True)
-def _moments(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, mom: np.ndarray) -> None:
-    """``mom = (mean u, mean v, cov a, b, c)`` of the projected points, relative to the centre point."""
-    u0, v0 = uvj[0, 0], uvj[0, 1]
+def _moments(us: np.ndarray, vs: np.ndarray, base: int, stride: int, wm, wc
+             ) -> tuple[float, float, float, float, float]:
+    """``(mean u, mean v, cov a, b, c)`` of projected points, relative to the centre point.
+
+    Point ``p`` is at ``(us, vs)[base + p * stride]``: rows of one Gaussian, or one Gaussian of a point-major
+    batch. With weight tuples (a constant count) the point loops unroll and a loop over Gaussians vectorises.
+    """
+    u0, v0 = us[base], vs[base]
     mu = mv = 0.0
-    for p in range(wm.shape[0]):
-        mu += wm[p] * (uvj[p, 0] - u0)
-        mv += wm[p] * (uvj[p, 1] - v0)
+    for p in range(len(wm)):
+        mu += wm[p] * (us[base + p * stride] - u0)
+        mv += wm[p] * (vs[base + p * stride] - v0)
     a = b = c = 0.0
-    for p in range(wm.shape[0]):
-        du, dv = uvj[p, 0] - u0 - mu, uvj[p, 1] - v0 - mv
+    for p in range(len(wm)):
+        du, dv = us[base + p * stride] - u0 - mu, vs[base + p * stride] - v0 - mv
         a += wc[p] * du * du
         b += wc[p] * du * dv
         c += wc[p] * dv * dv
-    mom[0], mom[1], mom[2], mom[3], mom[4] = u0 + mu, v0 + mv, a, b, c
+    return u0 + mu, v0 + mv, a, b, c
 
 
 @numba.njit(inline="always", cache=True)
@@ -249,24 +257,19 @@ def _adaptive_weight(opts: np.ndarray, x: float, y: float, z: float, sigma: floa
 @numba.njit(inline="always", cache=True)
 def _ut(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
         L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
-        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool, projected: bool = False
+        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool
         ) -> tuple[bool, float, float, float, float, float]:
-    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``.
-
-    ``projected``: ``uv7`` already holds the 7 sigma points' pixels (projected in a batch by the caller).
-    """
-    if not projected:
-        _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
-    _moments(uv7, wm7, wc7, mom[0])
+    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``."""
+    _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
+    m7 = _moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
     aw = _adaptive_weight(opts, x, y, z, sigma)
+    m19 = m7
     if aw[0]:
         _sigma_points(model, lens, opts, x, y, z, L, z19, uv19, jac)
-        _moments(uv19, wm19, wc19, mom[1])
-        for k in range(5):
-            mom[2, k] = mom[0, k] + aw[1] * (mom[1, k] - mom[0, k])
-    else:
-        for k in range(5):
-            mom[2, k] = mom[0, k]
+        m19 = _moments(uv19[:, 0], uv19[:, 1], 0, 1, wm19, wc19)
+    for k in range(5):
+        mom[0, k], mom[1, k] = m7[k], m19[k]
+        mom[2, k] = m7[k] + aw[1] * (m19[k] - m7[k]) if aw[0] else m7[k]
     return aw
 
 
@@ -276,17 +279,19 @@ def _eig_clamp(a: float, b: float, c: float, lo: float, hi: float, tiny: float
     """Eigenvalues of ``[[a, b], [b, c]]`` clamped to ``[lo, hi]`` via ``f(A) = f2 I + s (A - l2 I)``.
 
     Returns ``(need, pos, r, l1, l2, s, a', b', c')``; ``need`` False leaves the matrix untouched.
+    Selects only, so a loop of clamps vectorises.
     """
     mid, half = 0.5 * (a + c), 0.5 * (a - c)
     disc = half * half + b * b
     r0 = math.sqrt(disc)
-    if not (mid - r0 < lo or mid + r0 > hi):
-        return False, False, 0.0, mid, mid, 0.0, a, b, c
-    pos = disc > tiny
+    need = (mid - r0 < lo) | (mid + r0 > hi)
+    pos = (disc > tiny) & need
     r = r0 if pos else 0.0
     l1, l2 = mid + r, mid - r
     f1, f2 = min(max(l1, lo), hi), min(max(l2, lo), hi)
-    s = (f1 - f2) / (2 * r) if pos else 0.0
+    s = (f1 - f2) / (2 * r if pos else 1.0) if pos else 0.0
+    if not need:
+        return False, False, 0.0, mid, mid, 0.0, a, b, c
     return True, pos, r, l1, l2, s, f2 + s * (a - l2), s * b, f2 + s * (c - l2)
 
 
@@ -421,28 +426,32 @@ def cull(means: np.ndarray, log_scales: np.ndarray, lens: np.ndarray, opts: np.n
 
 
 @numba.njit(inline="always", cache=True)
-def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
-               L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
-               wm19: np.ndarray, wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray,
-               projected: bool = False) -> tuple[float, float, float, float, float, float, float, bool]:
-    """One camera-frame Gaussian's image footprint: ``(u, v, a, b, c, depth, radius, valid)``.
+def _clamped(mean_u: float, mean_v: float, a: float, b: float, c: float, x: float, y: float, z: float,
+             opts: np.ndarray) -> tuple[float, float, float, float, float, float, float, bool]:
+    """UT moments -> ``(u, v, a, b, c, depth, radius, valid)``: NaN guard, blur, eigenvalue clamp, 3-sigma box.
 
-    UT moments, NaN guard, blur and eigenvalue clamp; ``(a, b, c)`` is the clamped 2D covariance,
-    ``valid`` whether it is finite and its 3-sigma box overlaps the image. ``projected`` as ``_ut``.
+    ``(a, b, c)`` is the clamped 2D covariance, ``valid`` whether it is finite and its box overlaps the image.
     """
-    _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, False, projected)
-    mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
-    finite = np.isfinite(mean_u) and np.isfinite(mean_v) and np.isfinite(a) and np.isfinite(b) \
-        and np.isfinite(c)
-    if not finite:
-        mean_u = mean_v = a = b = c = 0.0
+    finite = np.isfinite(mean_u) & np.isfinite(mean_v) & np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+    mean_u, mean_v = (mean_u, mean_v) if finite else (0.0, 0.0)
+    a, b, c = (a, b, c) if finite else (0.0, 0.0, 0.0)
     blur = opts[BLUR]
     _, _, _, _, _, _, a, b, c = _eig_clamp(a + blur, b, c + blur, opts[LO], opts[HI], opts[TINY])
     half = 0.5 * (a - c)
     radius = math.ceil(opts[EXTENT] * math.sqrt(0.5 * (a + c) + math.sqrt(max(half * half + b * b, 0.0))))
-    valid = finite and (mean_u + radius > -0.5 and mean_u - radius < opts[WIDTH] - 0.5
-                        and mean_v + radius > -0.5 and mean_v - radius < opts[HEIGHT] - 0.5)
+    valid = finite & (mean_u + radius > -0.5) & (mean_u - radius < opts[WIDTH] - 0.5) \
+        & (mean_v + radius > -0.5) & (mean_v - radius < opts[HEIGHT] - 0.5)
     return mean_u, mean_v, a, b, c, math.sqrt(x * x + y * y + z * z), radius, valid
+
+
+@numba.njit(inline="always", cache=True)
+def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
+               L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
+               wm19: np.ndarray, wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray
+               ) -> tuple[float, float, float, float, float, float, float, bool]:
+    """One camera-frame Gaussian's image footprint ``(u, v, a, b, c, depth, radius, valid)``: UT, then ``_clamped``."""
+    _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, False)
+    return _clamped(mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4], x, y, z, opts)
 
 
 @numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")

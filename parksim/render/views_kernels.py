@@ -50,15 +50,18 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
                  out_depths: np.ndarray) -> None:
     """``project_views`` for the Gaussians ``start:stop`` (one thread's chunk), all cameras.
 
-    Per camera: cull and gather the visible Gaussians, project all their 7-point sigma points in one
-    vectorised loop (``project_kernels.project_batch``), then finish each footprint and colour it.
+    Per camera: cull and gather the visible Gaussians; then, each in one loop over them that vectorises,
+    their 7-point sigma points, projections, UT moments and clamped footprints; the rich point set for the
+    few that need it, and the SH colour of the drawn ones, Gaussian by Gaussian.
     """
-    m_max, n7 = stop - start, z7.shape[0]
-    uv7, uv19 = np.empty((n7, 8)), np.empty((z19.shape[0], 8))
-    mom, basis = np.empty((3, 5)), np.empty(16)
+    m_max, n7 = stop - start, pk.N_UT
+    wm = (wm7[0], wm7[1], wm7[2], wm7[3], wm7[4], wm7[5], wm7[6])   # tuples: constant point count, no aliasing
+    wc = (wc7[0], wc7[1], wc7[2], wc7[3], wc7[4], wc7[5], wc7[6])
+    uv19, basis = np.empty((z19.shape[0], 8)), np.empty(16)
     R, s = np.empty((m_max, 3, 3)), np.empty((m_max, 3))     # per Gaussian, shared by the cameras
-    vis, xyz, L = np.empty(m_max, np.int64), np.empty((m_max, 3)), np.empty((m_max, 3, 3))  # per camera
+    vis, xyz, L, sig = np.empty(m_max, np.int64), np.empty((m_max, 3)), np.empty((m_max, 3, 3)), np.empty(m_max)
     pts, uv = np.empty((3, n7 * m_max)), np.empty((2, n7 * m_max))
+    mom, foot, valid = np.empty((5, m_max)), np.empty((6, m_max)), np.empty(m_max, np.bool_)
     for k in range(m_max):
         qw, qx, qy, qz, _ = pk._unit_quaternion(quats[start + k])
         pk._rotation(qw, qx, qy, qz, R[k])
@@ -76,7 +79,7 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
             z = rot[2, 0] * mx + rot[2, 1] * my + rot[2, 2] * mz + trans[cam, 2]
             if not pk._visible(lens, opt, x, y, z, log_scales[g]):
                 continue
-            vis[m] = k
+            vis[m], sig[m] = k, max(s[k, 0], s[k, 1], s[k, 2])
             xyz[m, 0], xyz[m, 1], xyz[m, 2] = x, y, z
             pk._rotate_scaled(rot, R[k], s[k], L[m])
             m += 1
@@ -87,20 +90,30 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
                     pts[d, p * m + i] = xyz[i, d] + (L[i, d, 0] * z0 + L[i, d, 1] * z1 + L[i, d, 2] * z2)
         pk.project_batch(models[cam], lens, opt[pk.AXIS_EPS], opt[pk.TINY], pts, uv, n7 * m)
         for i in range(m):
-            k = vis[i]
-            g = start + k
-            for p in range(n7):
-                uv7[p, 0], uv7[p, 1] = uv[0, p * m + i], uv[1, p * m + i]
+            mu, mv, a, b, c = pk._moments(uv[0], uv[1], i, m, wm, wc)
+            mom[0, i], mom[1, i], mom[2, i], mom[3, i], mom[4, i] = mu, mv, a, b, c
+        for i in range(m):    # the fifth-degree set, blended in, where the 7-point UT is wrong (_ut)
             x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            sigma = max(s[k, 0], s[k, 1], s[k, 2])
-            u, v, a, b, c, depth, _, valid = pk._footprint(models[cam], lens, opt, x, y, z, sigma, L[i], z7, wm7,
-                                                           wc7, z19, wm19, wc19, uv7, uv19, mom, True)
-            if not valid:
+            rich, w, _, _, _, _ = pk._adaptive_weight(opt, x, y, z, sig[i])
+            if rich:
+                pk._sigma_points(models[cam], lens, opt, x, y, z, L[i], z19, uv19, False)
+                m19 = pk._moments(uv19[:, 0], uv19[:, 1], 0, 1, wm19, wc19)
+                for j in range(5):
+                    mom[j, i] += w * (m19[j] - mom[j, i])
+        for i in range(m):
+            u, v, a, b, c, depth, _, ok = pk._clamped(mom[0, i], mom[1, i], mom[2, i], mom[3, i], mom[4, i],
+                                                      xyz[i, 0], xyz[i, 1], xyz[i, 2], opt)
+            foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i], foot[5, i] = u, v, a, b, c, depth
+            valid[i] = ok
+        for i in range(m):
+            if not valid[i]:
                 continue
+            g = start + vis[i]
+            a, b, c = foot[2, i], foot[3, i], foot[4, i]
             det = a * c - b * b
-            out_means[cam, g, 0], out_means[cam, g, 1] = u, v
+            out_means[cam, g, 0], out_means[cam, g, 1] = foot[0, i], foot[1, i]
             out_conics[cam, g, 0], out_conics[cam, g, 1], out_conics[cam, g, 2] = c / det, -b / det, a / det
-            out_depths[cam, g] = depth
+            out_depths[cam, g] = foot[5, i]
             dx, dy, dz = means[g, 0] - centres[cam, 0], means[g, 1] - centres[cam, 1], means[g, 2] - centres[cam, 2]
             inv = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # a Gaussian at the camera: any direction
             n_basis = _sh_basis(sh_degree, dx * inv, dy * inv, dz * inv, basis)
