@@ -3,7 +3,7 @@
 Numba drops a cached kernel only when the kernel's own file changes, but our kernels inline helpers and
 constants from other files (the lens in ``project_kernels``, the ellipse, the tile constants): after such a
 helper changes, a stale cache would silently run the old code. So, unless ``NUMBA_CACHE_DIR`` is set, the
-cache goes to a folder named by a hash of the kernel packages' sources, and older folders are removed.
+cache goes to a folder named by a hash of the kernel packages' sources; all but the newest few others are removed.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ _ROOT = Path(__file__).resolve().parent
 KERNEL_SOURCES = ("render", "synth", "gaussians.py", "ipm_kernels.py")
 """What the kernels and their inlined helpers are built from (packages or files under ``parksim/``)."""
 _PREFIX = "numba-"
+KEEP_OTHERS = 2
+"""Cache folders of other sources kept (most recently written first); older ones are removed (~3 MB each)."""
 
 
 def source_hash() -> str:
@@ -54,7 +56,7 @@ def configure() -> None:
     if home is None:
         return   # numba's own default (and its own fallbacks) then
     current = home / f"{_PREFIX}{source_hash()}"
-    for old in home.glob(f"{_PREFIX}*"):
-        if old != current:
-            shutil.rmtree(old, ignore_errors=True)
+    others = sorted((d for d in home.glob(f"{_PREFIX}*") if d != current), key=lambda d: d.stat().st_mtime)
+    for old in others[:-KEEP_OTHERS]:   # the newest few stay: another process may still be running that source
+        shutil.rmtree(old, ignore_errors=True)
     numba.config.CACHE_DIR = str(current)

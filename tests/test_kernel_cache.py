@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numba
 import pytest
 
@@ -39,11 +41,15 @@ def test_hash_follows_every_kernel_source_but_not_other_modules(tree):
 
 
 def test_configure_uses_a_folder_per_source_and_drops_stale_ones(tree):
-    stale = tree / "__pycache__" / "numba-0000000000000000"
-    stale.mkdir(parents=True)
+    others = [tree / "__pycache__" / f"numba-{k:016d}" for k in range(kernel_cache.KEEP_OTHERS + 2)]
+    for age, folder in enumerate(others):          # others[0] is the oldest
+        folder.mkdir(parents=True)
+        os.utime(folder, (1000 + age, 1000 + age))
     kernel_cache.configure()
     expected = tree / "__pycache__" / f"numba-{kernel_cache.source_hash()}"
-    assert numba.config.CACHE_DIR == str(expected) and not stale.exists()
+    assert numba.config.CACHE_DIR == str(expected)
+    kept = [f.exists() for f in others]
+    assert kept == [False, False] + [True] * kernel_cache.KEEP_OTHERS   # the newest others stay
 
 
 def test_a_users_numba_cache_dir_wins(tree, monkeypatch):
