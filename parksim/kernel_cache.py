@@ -47,6 +47,14 @@ def _writable_home() -> Path | None:
     return None
 
 
+def _mtime(path: Path) -> float:
+    """Modification time, or -1 for a folder another process removed meanwhile."""
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return -1.0
+
+
 @functools.cache
 def configure() -> None:
     """Point numba's cache at this source's folder (before any kernel module is imported); keep a user's choice."""
@@ -56,7 +64,7 @@ def configure() -> None:
     if home is None:
         return   # numba's own default (and its own fallbacks) then
     current = home / f"{_PREFIX}{source_hash()}"
-    others = sorted((d for d in home.glob(f"{_PREFIX}*") if d != current), key=lambda d: d.stat().st_mtime)
+    others = sorted((d for d in home.glob(f"{_PREFIX}*") if d != current), key=_mtime)
     for old in others[:-KEEP_OTHERS]:   # the newest few stay: another process may still be running that source
         shutil.rmtree(old, ignore_errors=True)
     numba.config.CACHE_DIR = str(current)
