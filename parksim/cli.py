@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
-# Before torch is imported by any subcommand: OpenMP threads that spin while waiting steal the
-# core numba's kernels need on a small machine (measured: 4.6 s -> 0.76 s for a four-camera render
-# under load, benchmarks/RESULTS_render.md). A user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from .omp_env import prefer_sleeping_omp_threads
+
+prefer_sleeping_omp_threads()   # before any subcommand imports torch
 
 # Order is the order shown in --help.
 COMMANDS = ["demo", "synth", "reconstruct", "eval", "colmap", "detector", "render", "ipm", "serve", "bench", "compact"]
