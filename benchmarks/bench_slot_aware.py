@@ -81,6 +81,19 @@ def train_run(run: Run, data: Path, photometric: Path, folder: Path, base: Train
     return True
 
 
+def shorter_photometric(config: TrainConfig, iterations: int | None) -> TrainConfig:
+    """``config`` with an ``iterations``-long photometric phase, densification (both strategies) stopping 100
+    iterations before its end as in cpu_fast.yaml; None leaves it as it is."""
+    if iterations is None:
+        return config
+    stop = max(0, iterations - 100)
+    densify = config.densify.model_copy(update={
+        "mcmc": config.densify.mcmc.model_copy(update={"refine_stop": min(config.densify.mcmc.refine_stop, stop)}),
+        "adc": config.densify.adc.model_copy(update={"refine_stop": min(config.densify.adc.refine_stop, stop)})})
+    return config.model_copy(update={"photometric": config.photometric.model_copy(update={"iterations": iterations}),
+                                     "densify": densify})
+
+
 def _slot_seconds(run_dir: Path, photometric: Path) -> float:
     """Training seconds of the slot-aware phase alone (the bundle's total minus the shared photometric phase)."""
     total = json.loads((run_dir / "bundle.json").read_text())["train_seconds"]
@@ -130,11 +143,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--photometric-config", type=Path, default=ROOT / "configs" / "cpu_fast.yaml",
                     help="config of a photometric run trained here")
     ap.add_argument("--iterations", type=int, help="slot-aware iterations per run (default: --config's)")
+    ap.add_argument("--photometric-iterations", type=int,
+                    help="photometric iterations of both configs (default: theirs); densification stops 100 before")
     ap.add_argument("--runs", type=Path, default=Path("scenes/slot_aware"), help="where the runs go (per scene)")
     ap.add_argument("--threshold", type=float, default=0.5, help="detectors' operating threshold")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "RESULTS_slot_aware.md")
     args = ap.parse_args(argv)
-    base = load_config(args.config)
+    base = shorter_photometric(load_config(args.config), args.photometric_iterations)
+    photometric_config = shorter_photometric(load_config(args.photometric_config), args.photometric_iterations)
     iterations = args.iterations or base.slot_aware.iterations
     detectors = dict(args.detector)
     models = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in detectors.items()}
@@ -143,7 +159,10 @@ def main(argv: list[str] | None = None) -> int:
     results, timings = [], []
     for data, photometric in args.scene:
         if not (photometric / "bundle.json").is_file():
-            reconstruct(data, photometric, args.photometric_config)
+            path = args.runs / "configs" / f"{photometric.name}.yaml"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(dump_config(photometric_config))
+            reconstruct(data, photometric, path)
         root = args.runs / data.name
         for run in runs:
             trained = train_run(run, data, photometric, root / run.name, base, iterations, detectors)
@@ -160,8 +179,11 @@ def main(argv: list[str] | None = None) -> int:
         f"`python benchmarks/bench_slot_aware.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
         f"Started {started.isoformat(timespec='minutes')}; load average {load_before[0]:.1f} at the start and "
         f"{load_after[0]:.1f} at the end (2 shared cores); torch {torch.__version__}, {torch.get_num_threads()} threads.",
-        f"Schedule: photometric phase `{args.photometric_config.name}` (shared by all runs), then {iterations} "
-        f"slot-aware iterations per run (`{args.config.name}`); detectors: "
+        f"Schedule: photometric phase `{args.photometric_config.name}`"
+        + (f" cut to {args.photometric_iterations} iterations" if args.photometric_iterations else "")
+        + f" (shared by all runs), then {iterations} "
+        f"slot-aware iterations per run (`{args.config.name}`"
+        + (", its photometric section cut the same way" if args.photometric_iterations else "") + "); detectors: "
         + ", ".join(f"{DETECTOR_TITLES[k]} `{p}`" for k, p in detectors.items())
         + f"; operating threshold {args.threshold}; ablation guided by {DETECTOR_TITLES[args.guide]}.", "",
         "| scene | run | slot-aware training (s, wall) | trained by |", "| --- | --- | --- | --- |", *timings, "",
