@@ -166,7 +166,6 @@ def test_gsplat_matches_numba() -> None:
         assert (got.cpu() - want).abs().max() <= 1e-3
 
 
-
 def _image(seed: int, width: int, height: int, n: int):
     """A random float32 compositor input (``cpu.Image``) of ``n`` Gaussians spread over a width x height image."""
     import numpy as np

@@ -4,10 +4,10 @@ Work is splat-major inside a tile: each Gaussian of the tile's depth-sorted list
 alpha-threshold ellipse reaches, updating per-pixel state held in a [7, 256] tile buffer, so every pixel
 still sees its Gaussians in depth order; the forward takes the list two at a time, so one pass of state
 loads and stores serves both where their rows overlap. A row is one fixed-length, branch-free loop
-(selects, fast exp, unsigned indices) that LLVM turns into full-width SIMD. Tiles are dealt to threads round robin, heaviest
-first; the backward writes one gradient row per (tile, Gaussian) intersection and reduces them afterwards,
-so no two threads write the same memory. Ranks (1-based positions in a tile's list) are kept as float32
-in the state buffer, exact up to 2^24 Gaussians per tile.
+(selects, fast exp, unsigned indices) that LLVM turns into full-width SIMD. Tiles are dealt to threads
+round robin, heaviest first; the backward writes one gradient row per (tile, Gaussian) intersection and
+reduces them afterwards, so no two threads write the same memory. Ranks (1-based positions in a tile's
+list) are kept as float32 in the state buffer, exact up to 2^24 Gaussians per tile.
 """
 
 from __future__ import annotations
