@@ -4,7 +4,6 @@ PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
-SAMPLE  ?= ../shared/data/surround-view-sample
 
 .PHONY: setup demo test clean
 
@@ -17,7 +16,7 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/parksim demo --sample $(SAMPLE) -o out/demo
+	$(BIN)/parksim demo -o out/demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

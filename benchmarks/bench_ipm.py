@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import torch
 
+from parksim.assets import SAMPLE_DIR
 from parksim.calib.sample_rig import load_sample_images, sample_rig
 from parksim.ipm import IPM
 
@@ -45,7 +46,7 @@ def opencv_stitch(ipm: IPM, images: dict[str, np.ndarray]) -> np.ndarray:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("sample", nargs="?", type=Path, default=Path("../shared/data/surround-view-sample"))
+    ap.add_argument("sample", nargs="?", type=Path, default=SAMPLE_DIR)
     ap.add_argument("--repeats", type=int, default=21)
     args = ap.parse_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__} "

@@ -13,13 +13,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from parksim.assets import SAMPLE_DIR  # noqa: E402
 from parksim.calib.sample_rig import load_sample_images, sample_rig  # noqa: E402
 from parksim.ipm import IPM  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("sample", nargs="?", type=Path, default=Path("../shared/data/surround-view-sample"))
+    ap.add_argument("sample", nargs="?", type=Path, default=SAMPLE_DIR)
     ap.add_argument("-o", "--output", type=Path, default=Path("docs/sample_ipm.jpg"))
     args = ap.parse_args()
     rig, _ = sample_rig(args.sample, m_per_px=0.02)

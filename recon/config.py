@@ -1,7 +1,8 @@
 """Training configuration: pydantic models (unknown keys are errors) loaded from YAML files.
 
 The defaults are the paper's numbers (ParkGaussian on 3DGS/3DGUT + gsplat's MCMC strategy);
-``configs/parkgaussian.yaml`` spells them out and shorter CPU schedules override them.
+the packaged preset ``parkgaussian`` spells them out and shorter CPU schedules override them.
+Presets ship inside the package (``parksim/configs/NAME.yaml``), so ``--config tiny`` works from any folder.
 """
 
 from __future__ import annotations
@@ -14,7 +15,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .slot_aware.config import SlotAwareConfig
 
-__all__ = ["TrainConfig", "ConfigError", "load_config", "parse_config", "dump_config"]
+__all__ = ["TrainConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config", "load_config",
+           "parse_config", "dump_config"]
+
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "parksim" / "configs"
+"""The packaged training presets, one YAML file per name."""
 
 
 class ConfigError(ValueError):
@@ -143,15 +148,32 @@ def parse_config(data: object, source: str) -> TrainConfig:
         raise ConfigError(f"{source}: invalid config: {_format_errors(e)}") from None
 
 
+def preset_names() -> list[str]:
+    """Names of the packaged presets (``tiny``, ``demo``, ``cpu_fast``, ...), sorted."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def resolve_config(spec: str | Path) -> Path:
+    """The YAML file that ``spec`` names: an existing file path, else a packaged preset by name.
+
+    A path wins over a preset of the same name, so a user's ``tiny.yaml`` in the working folder is theirs.
+    """
+    path = Path(spec)
+    if path.is_file():
+        return path
+    preset = PRESETS_DIR / f"{path.stem if path.suffix in ('.yaml', '.yml') else path.name}.yaml"
+    if path.parent == Path(".") and preset.is_file():
+        return preset
+    raise ConfigError(f"{spec}: neither a config file nor a packaged preset (presets: {', '.join(preset_names())})")
+
+
 def load_config(path: str | Path) -> TrainConfig:
-    """Read and validate a YAML config file."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
+    """Read and validate a YAML config file, given by path or by packaged preset name."""
+    path = resolve_config(path)
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        raise ConfigError(f"{path}: not valid YAML: {' '.join(str(e).split())}") from None
     return parse_config(data, str(path))
 
 

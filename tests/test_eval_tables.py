@@ -28,7 +28,7 @@ THRESHOLD = 0.3  # an operating point at which the few-step detector below detec
 
 
 def _write_config(path: Path, **sections) -> Path:
-    base = load_config(ROOT / "configs" / "tiny.yaml")
+    base = load_config("tiny")
     config = base.model_copy(update={"photometric": base.photometric.model_copy(update={"iterations": PHOTOMETRIC}),
                                      "run": base.run.model_copy(update={"log_every": 1}), **sections})
     path.write_text(dump_config(config))
@@ -158,7 +158,7 @@ def test_markdown_cells_from_hand_counts() -> None:
 
 
 def test_cpu_slot_aware_config_shares_the_cpu_fast_photometric_phase() -> None:
-    slot_aware = load_config(ROOT / "configs" / "cpu_slot_aware.yaml")
-    photometric = load_config(ROOT / "configs" / "cpu_fast.yaml")
+    slot_aware = load_config("cpu_slot_aware")
+    photometric = load_config("cpu_fast")
     assert all(getattr(slot_aware, k) == getattr(photometric, k) for k in ("init", "lr", "photometric", "densify"))
     assert slot_aware.slot_aware.iterations > 0 and slot_aware.slot_aware.detector is not None

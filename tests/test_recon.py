@@ -24,7 +24,7 @@ from recon.response import CameraResponse
 from recon.strategy_mcmc import relocation_correction
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ROOT / "configs" / "tiny.yaml"
+TINY = "tiny"
 
 
 @pytest.fixture(scope="session")
@@ -103,11 +103,11 @@ def test_existing_run_is_not_overwritten(full_run: Path, tiny_data: Path) -> Non
 
 
 def test_paper_defaults_are_the_shipped_config() -> None:
-    config = load_config(ROOT / "configs" / "parkgaussian.yaml")
+    config = load_config("parkgaussian")
     assert config == TrainConfig()
     assert (config.photometric.iterations, config.slot_aware.iterations) == (20_000, 10_000)
     assert config.photometric.ssim_lambda == 0.2 and config.lr.means_final_factor == 0.01
-    load_config(ROOT / "configs" / "cpu_fast.yaml")
+    load_config("cpu_fast")
 
 
 def test_relocation_keeps_opacity_and_is_identity_for_one_copy() -> None:

@@ -9,12 +9,11 @@ import pytest
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
+from parksim.assets import SAMPLE_DIR as SAMPLE
 from parksim.camera import OpenCVFisheye, RadialPolyFisheye
 from parksim.geometry import (as_pose, compose, invert_transform, pose_from_xy_yaw, quaternion_from_rotation,
                               rotation_from_quaternion, transform_points, xy_yaw_from_pose)
 from parksim.rig import BEVSpec, CalibrationError, Rig, RigCamera
-
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "surround-view-sample"
 
 # WoodScape's published front-camera calibration (scripts/calibration/front.json), written from the documented format.
 WOODSCAPE_FV = {
@@ -107,7 +106,6 @@ def test_from_woodscape_matches_documented_projection(tmp_path):
     assert cam.T_vehicle_camera[0, 2] > 0.5
 
 
-@pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"sample not found at {SAMPLE}")
 def test_from_opencv_yaml_reads_the_sample():
     paths = {name: SAMPLE / "yaml" / f"{stem}.yaml" for name, stem in
              [("front", "front"), ("rear", "back"), ("left", "left"), ("right", "right")]}

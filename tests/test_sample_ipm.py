@@ -14,11 +14,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from parksim.assets import SAMPLE_DIR as SAMPLE
 from parksim.calib.sample_rig import load_sample_images, sample_rig
 from parksim.ipm import IPM
-
-SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "surround-view-sample"
-pytestmark = pytest.mark.skipif(not SAMPLE.is_dir(), reason=f"sample not found at {SAMPLE}")
 
 # The sample's stitched bird's-eye layout (1 cm/px): 1200 x 1600, pattern inset by 300, car strips.
 W, H, SHIFT, XL, YT = 1200, 1600, 300, 500, 550

@@ -215,7 +215,7 @@ def test_trainer_runs_photometric_then_slot_aware_iterations(tmp_path) -> None:
     data = tmp_path / "tiny"
     assert cli_main(["synth", "tiny", "-o", str(data), "--frames", "4", "--resolution", "96x72", "--bev-px", "96",
                      "--points", "400", "--quiet"]) == 0
-    base = load_config(Path(__file__).resolve().parents[1] / "configs" / "tiny.yaml")
+    base = load_config("tiny")
     config = base.model_copy(update={
         "photometric": base.photometric.model_copy(update={"iterations": 2}),
         "slot_aware": SlotAwareConfig(iterations=2),

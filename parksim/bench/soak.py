@@ -22,7 +22,7 @@ from .procs import rss_mib, serve_bundle
 from .train import ensure_dataset
 
 
-def _soak_config(config: Path, steps: int) -> Any:
+def _soak_config(config: str, steps: int) -> Any:
     """``config`` stretched to ``steps`` photometric iterations with densification running to the end."""
     from recon.config import load_config
 

@@ -28,7 +28,7 @@ def ensure_dataset(scene: str, data_root: Path, resolution: str | None) -> Path:
     return data
 
 
-def _config_with_eval(config: Path, out: Path) -> Path:
+def _config_with_eval(config: str, out: Path) -> Path:
     """``config`` with periodic evaluation switched on (a fifth of the run) and no progress bar, written to ``out``."""
     from recon.config import dump_config, load_config
 
@@ -41,7 +41,7 @@ def _config_with_eval(config: Path, out: Path) -> Path:
     return path
 
 
-def train_one(scene: str, data: Path, config: Path, out: Path) -> dict[str, Any]:
+def train_one(scene: str, data: Path, config: str, out: Path) -> dict[str, Any]:
     """Train and evaluate one scene with one config; returns its curve and final numbers."""
     import os
     import shutil
@@ -64,7 +64,7 @@ def train_one(scene: str, data: Path, config: Path, out: Path) -> dict[str, Any]
     report = evaluate_views(bundle.scene, reader, [(f, c) for f in reader.split["test"] for c in reader.rig.names],
                             response)
     reached = next((r["elapsed_s"] for r in curve if r["test_psnr"] >= TARGET_DB), None)
-    return {"scene": scene, "config": config.stem, "curve": curve, "iterations": bundle.meta["iterations"],
+    return {"scene": scene, "config": Path(config).stem, "curve": curve, "iterations": bundle.meta["iterations"],
             "cpu_s": max((r.get("cpu_s", 0.0) for r in records), default=0.0), "load_end": os.getloadavg()[0],
             "gaussians": bundle.meta["gaussians"], "train_s": bundle.meta["train_seconds"],
             "psnr": report.mean("psnr"), "ssim": report.mean("ssim"), "slot_psnr": report.mean("slot_psnr"),
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> Any:
     with progress(len(pairs), "bench train", args.quiet) as bar:
         for scene, config in pairs:
             data = ensure_dataset(scene, args.data_root, args.resolution)
-            results.append(train_one(scene, data, config.resolve(), args.work / f"{scene}_{config.stem}"))
+            results.append(train_one(scene, data, config, args.work / f"{scene}_{Path(config).stem}"))
             bar.update(1)
     rows = [(r["scene"], r["config"], r["iterations"], r["gaussians"], f"{r['train_s'] / 60:.1f}",
              f"{r['cpu_s'] / 60:.1f}", f"{r['load_end']:.1f}", _fmt(r["psnr"], 2), _fmt(r["ssim"], 3),

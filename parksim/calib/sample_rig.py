@@ -1,6 +1,6 @@
 """Turn the real surround-view sample (OpenCV fisheye YAML + ground homographies) into a ``Rig``.
 
-The sample (``shared/data/surround-view-sample``) has intrinsics but no extrinsics: each
+The sample (shipped as ``parksim/assets/surround-view-sample``) has intrinsics but no extrinsics: each
 camera instead carries ``project_matrix``, a homography from its undistorted image (camera
 matrix scaled by ``scale_xy`` and shifted by ``shift_xy``) to a bird's-eye image of the
 6 m x 10 m ground pattern at 1 cm/px. Those homographies are not exactly rigid, so each

@@ -89,8 +89,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         description="Synthesise each scene if missing, train it with each config (periodic test "
                                     "evaluation on), evaluate the bundle, plot test PSNR/SSIM against wall-clock.")
     _option(t, "--scenes", ["scene1"], ["tiny"], "synth presets to train", _words)
-    _option(t, "--configs", [Path("configs/cpu_fast.yaml"), Path("configs/demo.yaml")], [Path("configs/tiny.yaml")],
-            "training configs", lambda s: [Path(v) for v in _words(s)])
+    _option(t, "--configs", ["cpu_fast", "demo"], ["tiny"],
+            "training configs (packaged preset names or YAML paths)", _words)
     _option(t, "--resolution", "320x240", None, "synth resolution WxH (None: the preset's)")
     t.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or synthesised")
     _common(t)
@@ -125,7 +125,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     _option(k, "--steps", 20_000, 30, "training iterations", int)
     _option(k, "--max-seconds", 3600.0, 120.0, "stop after this long", float)
     _option(k, "--log-every", 100, 10, "steps between log lines", int)
-    k.add_argument("--config", type=Path, default=Path("configs/tiny.yaml"), help="training config to stretch")
+    k.add_argument("--config", default="tiny", help="training config to stretch (packaged preset name or YAML path)")
     k.add_argument("--dataset", type=Path, help="dataset (default: synth tiny under --work)")
     _common(k)
 

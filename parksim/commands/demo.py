@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..assets import SAMPLE_DIR
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(
@@ -17,9 +19,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "test frames (parksim eval), render it at a new pose with its BEV (parksim render), and "
                     "stitch the real surround-view sample into a BEV (parksim ipm).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--sample", type=Path, default=Path("../shared/data/surround-view-sample"),
-                   help="the real surround-view sample folder")
-    p.add_argument("--config", type=Path, default=Path("configs/demo.yaml"), help="training config")
+    p.add_argument("--sample", type=Path, default=SAMPLE_DIR,
+                   help="a surround-view sample folder (images/ + yaml/); the default is the one shipped with ParkSim")
+    p.add_argument("--config", default="demo", help="training config: a packaged preset name or a YAML path")
     p.add_argument("--frames", type=int, default=30, help="frames of the synthetic garage")
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"), help="output folder")
     return p

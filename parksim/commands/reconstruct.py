@@ -19,7 +19,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("data", type=Path, help="dataset directory (parksim synth layout)")
     p.add_argument("-o", "--output", type=Path, required=True, help="scene bundle folder, e.g. scenes/NAME")
-    p.add_argument("--config", type=Path, help="training config YAML (default: the paper's, configs/parkgaussian.yaml)")
+    p.add_argument("--config", help="training config: a YAML path or a packaged preset name "
+                   "(tiny, demo, cpu_fast, cpu_slot_aware, parkgaussian; default: the paper's, parkgaussian)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUTPUT from its last checkpoint")
     p.add_argument("--from", dest="start_from", type=Path, metavar="RUN",
                    help="start from the finished photometric run in RUN (its checkpoints/last.pt): train only the "
