@@ -1,7 +1,7 @@
 """The paper's slot-aware experiments on CPU: one shared photometric phase, each variant's slot-aware phase, tables.
 
-For each scene: train the photometric bundle with ``configs/cpu_fast.yaml`` (or reuse it), start every run's
-slot-aware phase from it (``configs/cpu_slot_aware.yaml`` with the run's variant and guide detector), then
+For each scene: train the photometric bundle with the ``cpu_fast`` preset (or reuse it), start every run's
+slot-aware phase from it (the ``cpu_slot_aware`` preset with the run's variant and guide detector), then
 ``recon.paper_eval`` scores all of them and this writes ``benchmarks/RESULTS_slot_aware.md``: the schedule,
 timings, the paper-style tables and the issue's targets with the numbers that decide them.
 
@@ -138,10 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--guide", choices=["dmpr", "gcn"], default="gcn", help="detector guiding the ablation variants")
     ap.add_argument("--variants", nargs="*", type=Variant, default=list(ABLATION), help="ablation variants to run")
     ap.add_argument("--no-control", action="store_true", help="skip the 'photometric only, continued' control")
-    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "cpu_slot_aware.yaml",
-                    help="slot-aware config each run starts from (variant, detector, iterations set per run)")
-    ap.add_argument("--photometric-config", type=Path, default=ROOT / "configs" / "cpu_fast.yaml",
-                    help="config of a photometric run trained here")
+    ap.add_argument("--config", default="cpu_slot_aware",
+                    help="slot-aware config (preset name or YAML path) each run starts from (variant, detector, "
+                         "iterations set per run)")
+    ap.add_argument("--photometric-config", default="cpu_fast",
+                    help="config (preset name or YAML path) of a photometric run trained here")
     ap.add_argument("--iterations", type=int, help="slot-aware iterations per run (default: --config's)")
     ap.add_argument("--photometric-iterations", type=int,
                     help="photometric iterations of both configs (default: theirs); densification stops 100 before")
@@ -179,10 +180,10 @@ def main(argv: list[str] | None = None) -> int:
         f"`python benchmarks/bench_slot_aware.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
         f"Started {started.isoformat(timespec='minutes')}; load average {load_before[0]:.1f} at the start and "
         f"{load_after[0]:.1f} at the end (2 shared cores); torch {torch.__version__}, {torch.get_num_threads()} threads.",
-        f"Schedule: photometric phase `{args.photometric_config.name}`"
+        f"Schedule: photometric phase `{Path(args.photometric_config).stem}`"
         + (f" cut to {args.photometric_iterations} iterations" if args.photometric_iterations else "")
         + f" (shared by all runs), then {iterations} "
-        f"slot-aware iterations per run (`{args.config.name}`"
+        f"slot-aware iterations per run (`{Path(args.config).stem}`"
         + (", its photometric section cut the same way" if args.photometric_iterations else "") + "); detectors: "
         + ", ".join(f"{DETECTOR_TITLES[k]} `{p}`" for k, p in detectors.items())
         + f"; operating threshold {args.threshold}; ablation guided by {DETECTOR_TITLES[args.guide]}.", "",
