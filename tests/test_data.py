@@ -12,6 +12,7 @@ import torch
 
 from parksim.data import DatasetError, DatasetLayout, DatasetReader, DatasetWriter, atomic_dir
 from parksim.synth.rig import avm_rig
+from tolerances import f32_tol
 
 W, H, N = 64, 48, 3
 
@@ -62,8 +63,12 @@ def test_round_trip(dataset):
     for (c, f), img in src["images"].items():
         got = r.image(c, f).numpy()
         assert got.shape == (H, W, 3)
-        assert np.abs(got - img).max() <= 0.5 / 255 + 1e-6
-        assert np.abs(r.depth(c, f).numpy() - src["depths"][(c, f)]).max() <= 0.0005 + 1e-6
+        # Quantisation to 1/255 and to 1 mm, plus float32 rounding in ulps: the writer's x * 255 and the reader's
+        # u8 / 255 (a quarter ulp of 1 each); the reader's mm / 1000 (half an ulp of the deepest pixel: at 30 m
+        # the fixed 1e-6 this replaces was 0.52 ulp, and 0.49 of it was used).
+        assert np.abs(got - img).max() <= 0.5 / 255 + f32_tol(1.0, ulps=1)
+        depth = src["depths"][(c, f)]
+        assert np.abs(r.depth(c, f).numpy() - depth).max() <= 0.0005 + f32_tol(depth, ulps=1)
     assert r.labels(1)["slots"][0]["type"] == "perpendicular"
     assert r.ipm(2).shape == (100, 100, 3)
     xyz, rgb = r.points
