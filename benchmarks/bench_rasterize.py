@@ -23,8 +23,9 @@ import numpy as np
 import torch
 from llvmlite import binding as llvm
 
-from parksim.render.rasterize import TILE, kernels, rasterize
-from parksim.render.rasterize.kernels import _tile_box
+from parksim.render.rasterize import TILE, rasterize
+from parksim.render.rasterize import _kernels as kernels
+from parksim.render.rasterize._kernels import _tile_box
 from parksim.render.rasterize.tiles import bin_gaussians
 
 

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from .camera import pixel_grid
 from .geometry import invert_transform, transform_points
-from .ipm_kernels import blend_taps
+from ._ipm_kernels import blend_taps
 from .rig import BEVSpec, Rig
 
 __all__ = ["IPM"]
@@ -127,7 +127,7 @@ class IPM:
         """Blend the cameras' images (HxWxC, HxW or BxHxWxC) into the BEV (same layout).
 
         Differentiable; when no image needs a gradient, single float32 HxWxC images take a numba gather
-        (``ipm_kernels.blend_taps``) with the same taps and weights instead of one ``grid_sample`` per camera.
+        (``_ipm_kernels.blend_taps``) with the same taps and weights instead of one ``grid_sample`` per camera.
         """
         self._check(images)
         if self._gather_applies(images):

@@ -1,7 +1,7 @@
 """Numba's on-disk kernel cache, keyed by the source of every kernel and every helper it inlines.
 
 Numba drops a cached kernel only when the kernel's own file changes, but our kernels inline helpers and
-constants from other files (the lens in ``project_kernels``, the ellipse, the tile constants): after such a
+constants from other files (the lens in ``_project_kernels``, the ellipse, the tile constants): after such a
 helper changes, a stale cache would silently run the old code. So, unless ``NUMBA_CACHE_DIR`` is set, the
 cache goes to a folder named by a hash of the kernel packages' sources; all but the newest few others are removed.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numba
 
 _ROOT = Path(__file__).resolve().parent
-KERNEL_SOURCES = ("render", "synth", "gaussians.py", "ipm_kernels.py")
+KERNEL_SOURCES = ("render", "synth", "gaussians.py", "_ipm_kernels.py")
 """What the kernels and their inlined helpers are built from (packages or files under ``parksim/``)."""
 _PREFIX = "numba-"
 KEEP_OTHERS = 2

@@ -28,7 +28,7 @@ from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
 from .rasterize.cpu import Image, composite_many
-from .rasterize.kernels import finish_image
+from .rasterize._kernels import finish_image
 from .scratch import thread_scratch
 from .sh import eval_sh
 

@@ -18,9 +18,9 @@ import torch
 from torch import Tensor
 
 from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
-from . import project_kernels as pk
+from . import _project_kernels as pk
 from .scratch import Allocator, fresh
-from .views_kernels import project_views
+from ._views_kernels import project_views
 
 __all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "project_views_fused", "ViewsProjected",
            "keep_torch_threads"]

@@ -16,7 +16,7 @@ from torch import Tensor
 from ..project_fast import keep_torch_threads
 from .constants import T_MIN, TILE
 from .cpu import _f32, _heaviest_first
-from .kernels import _pair_alpha, _start_tile, _tile_box
+from ._kernels import _pair_alpha, _start_tile, _tile_box
 from .tiles import bin_gaussians
 
 __all__ = ["max_weights"]

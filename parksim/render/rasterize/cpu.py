@@ -14,7 +14,7 @@ from torch import Tensor
 
 from ..project_fast import keep_torch_threads
 from ..scratch import Allocator, fresh, thread_scratch
-from . import kernels
+from . import _kernels as kernels
 from .constants import T_MIN
 from .tiles import TileBins, bin_gaussians
 

@@ -1,7 +1,7 @@
 """Numba kernel of the inference path: every camera of a rig projected and coloured in one pass over the scene.
 
 Per Gaussian: its rotation and scales are read once, then for each camera the world -> camera transform,
-the cull test, the UT footprint (the same inline steps as ``project_kernels.forward``) and the SH colour
+the cull test, the UT footprint (the same inline steps as ``_project_kernels.forward``) and the SH colour
 along the camera's view direction. Outputs are dense ``[cameras, N]`` rows; a Gaussian a camera does not
 draw gets opacity 0, which the rasterizer's binning skips. No autograd: training uses ``project_fast``.
 """
@@ -14,7 +14,7 @@ import numba
 import numpy as np
 
 from ..gaussians import SH_C0
-from . import project_kernels as pk
+from . import _project_kernels as pk
 from .sh import _C1, _C2, _C3
 
 __all__ = ["project_views"]
@@ -135,7 +135,7 @@ def project_views(means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, 
     """World Gaussians -> per-camera 2D means, conics, colours, opacities (0: not drawn) and distances.
 
     Camera ``c`` has ``T_camera_world = [rots[c] | trans[c]]``, centre ``centres[c]`` in the world, lens model
-    ``models[c]`` with ``lenses[c]`` and ``opts[c]`` as ``project_kernels``; ``sh`` is ``[N, K, 3]``.
+    ``models[c]`` with ``lenses[c]`` and ``opts[c]`` as ``_project_kernels``; ``sh`` is ``[N, K, 3]``.
     """
     n = means.shape[0]
     for ch in numba.prange((n + pk.CHUNK - 1) // pk.CHUNK):
