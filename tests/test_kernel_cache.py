@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import re
+from pathlib import Path
 
 import numba
 import pytest
@@ -57,3 +59,18 @@ def test_a_users_numba_cache_dir_wins(tree, monkeypatch):
     before = numba.config.CACHE_DIR
     kernel_cache.configure()
     assert numba.config.CACHE_DIR == before and not (tree / "__pycache__").exists()
+
+
+def test_every_module_with_cached_kernels_is_hashed():
+    """Each ``KERNEL_SOURCES`` entry exists (a renamed kernel file left there would break every import) and
+    covers every parksim module that compiles a cached numba kernel, so none of them can run stale code."""
+    root = Path(kernel_cache.__file__).resolve().parent
+    hashed: set[Path] = set()
+    for entry in kernel_cache.KERNEL_SOURCES:
+        path = root / entry
+        assert path.exists(), f"KERNEL_SOURCES names {entry}, which is not in {root}"
+        hashed |= set(path.rglob("*.py")) if path.is_dir() else {path}
+    cached = re.compile(r"@numba\.njit\([^)]*cache=True")
+    kernels = {f for f in root.rglob("*.py") if cached.search(f.read_text())}
+    assert root / "_ipm_kernels.py" in kernels and root / "render" / "_project_kernels.py" in kernels
+    assert kernels <= hashed, sorted(str(f.relative_to(root)) for f in kernels - hashed)
