@@ -6,5 +6,7 @@ Each model has ``project(points[...,3]) -> (uv[...,2], valid[...])`` and
 
 from .base import CameraModel, pixel_grid
 from .models import OpenCVFisheye, Pinhole, RadialPolyFisheye, camera_from_dict
+from .ocam import OCamFisheye
 
-__all__ = ["CameraModel", "pixel_grid", "OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "camera_from_dict"]
+__all__ = ["CameraModel", "pixel_grid", "OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "OCamFisheye",
+           "camera_from_dict"]
