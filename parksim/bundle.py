@@ -49,6 +49,12 @@ class Bundle:
     meta: dict[str, Any] = field(default_factory=dict)
     visibility: VisibilityGrid | None = None
 
+    def __post_init__(self) -> None:
+        try:
+            self.scene.validate()
+        except ValueError as e:
+            raise BundleError(f"bundle scene: {e}") from None
+
     @property
     def bev(self) -> BEVSpec:
         return self.rig.bev
@@ -77,13 +83,21 @@ def _read_json(path: Path) -> Any:
         raise BundleError(f"{path}: unreadable JSON ({e})") from None
 
 
+def _inside(directory: Path, name: str, key: str) -> Path:
+    """``directory / name``, refused (naming ``key``) when it resolves outside ``directory``, links included."""
+    path = directory / name
+    if not path.resolve().is_relative_to(directory.resolve()):
+        raise BundleError(f"{directory}: {key} {name!r} points outside the bundle folder")
+    return path
+
+
 def load(directory: str | Path) -> Bundle:
-    """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``)."""
+    """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``); every file must lie inside it."""
     directory = Path(directory)
     if not directory.is_dir():
         raise BundleError(f"{directory}: bundle folder not found")
     for name in (GAUSSIANS, RIG, META):
-        if not (directory / name).is_file():
+        if not _inside(directory, name, "file").is_file():
             raise BundleError(f"{directory}: not a scene bundle ({name} is missing)")
     meta = _read_json(directory / META)
     if not isinstance(meta, dict) or meta.get("version") != BUNDLE_VERSION:
@@ -94,7 +108,7 @@ def load(directory: str | Path) -> Bundle:
         rig = Rig.load(directory / RIG)
     except (PLYFormatError, CalibrationError) as e:
         raise BundleError(str(e)) from None
-    world_map = _read_json(directory / MAP) if (directory / MAP).is_file() else None
+    world_map = _read_json(directory / MAP) if _inside(directory, MAP, "file").is_file() else None
     meta.pop("version")
     return Bundle(scene, rig, world_map, meta, _load_visibility(directory, meta.get("visibility"), len(scene)))
 
@@ -103,7 +117,7 @@ def _load_visibility(directory: Path, name: Any, n_gaussians: int) -> Visibility
     """The grid named in bundle.json (None when it names none), checked against the scene's Gaussian count."""
     if name is None:
         return None
-    path = directory / str(name)
+    path = _inside(directory, str(name), f"{META} key 'visibility'")
     if not path.is_file():
         raise BundleError(f"{directory}: bundle.json names a visibility grid {name!r} that is missing")
     try:

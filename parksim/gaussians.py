@@ -46,6 +46,10 @@ class GaussianScene:
     sh_degree: int
 
     def __post_init__(self) -> None:
+        self._check_shapes()
+
+    def _check_shapes(self) -> None:
+        """``ValueError`` unless every tensor has the shape that N and ``sh_degree`` call for."""
         n = self.means.shape[0]
         expected = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,),
                     "sh": (n, (self.sh_degree + 1) ** 2, 3)}
@@ -55,6 +59,24 @@ class GaussianScene:
             got = tuple(getattr(self, name).shape)
             if got != shape:
                 raise ValueError(f"GaussianScene: {name} must have shape {shape}, got {got}")
+
+    def validate(self) -> None:
+        """``ValueError`` naming the tensor and first Gaussian unless shapes agree, every value is finite and every
+        quaternion is non-zero: one non-finite coefficient would turn every pixel it touches NaN.
+
+        O(N), so call it once when a scene is loaded or built (``Bundle`` does), never per render.
+        """
+        self._check_shapes()
+        for name, t in self._tensors().items():
+            finite = torch.isfinite(t.detach())
+            bad = ~(finite.flatten(1).all(dim=1) if t.ndim > 1 else finite)
+            if bool(bad.any()):
+                raise ValueError(f"GaussianScene: {name} is not finite for {int(bad.sum())} Gaussian(s), first at "
+                                 f"Gaussian {int(bad.nonzero()[0, 0])}")
+        zero = (self.quats.detach() == 0).all(dim=1)
+        if bool(zero.any()):
+            raise ValueError(f"GaussianScene: quats is all zero (no rotation) for {int(zero.sum())} Gaussian(s), "
+                             f"first at Gaussian {int(zero.nonzero()[0, 0])}")
 
     def __len__(self) -> int:
         return self.means.shape[0]
