@@ -2,14 +2,7 @@
 
 Both return the same ``Frame`` (uint8 RGB views, optional float32 depth, optional uint8 BEV) for
 the same request, bit for bit: the server renders with ``LocalSim`` and ships the arrays in an
-``.npz`` whose layout is defined here once (``encode_npz`` / ``decode_npz``):
-
-```
-images/<camera>  uint8 [H, W, 3]      (batch: [B, H, W, 3])
-depth/<camera>   float32 [H, W], m    (only when depth was asked for)
-bev              uint8 [Hb, Wb, 3]    (only when the BEV was asked for)
-meta             JSON string: scene, poses, cameras, scale, sizes, timings_ms, batch
-```
+``.npz`` whose layout ``NPZ_LAYOUT`` is defined here once (``encode_npz`` / ``decode_npz``).
 """
 
 from __future__ import annotations
@@ -26,7 +19,19 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["Frame", "RequestError", "LocalSim", "RemoteSim", "encode_npz", "decode_npz", "pose_text"]
+__all__ = ["Frame", "RequestError", "LocalSim", "RemoteSim", "encode_npz", "decode_npz", "pose_text", "NPZ_LAYOUT"]
+
+NPZ_LAYOUT = """\
+images/<camera>  uint8 [H, W, 3]     one per camera asked for
+depth/<camera>   float32 [H, W]      metres along the ray; only when depth was asked for
+bev              uint8 [Hb, Wb, 3]   only when the BEV was asked for
+meta             0-d unicode array   JSON: scene, poses, cameras, bev, scale, sizes, timings_ms, batch
+batch (POST /render): every array but meta gains a leading pose axis B, e.g. images/<camera> [B, H, W, 3]"""
+"""Keys, dtypes and shapes of a render ``.npz`` (uncompressed ``numpy.savez``)."""
+_NPZ_ARRAY_OVERHEAD = 512
+"""Bytes an array adds to an ``.npz`` beyond its data, at most: zip entry and .npy header."""
+_META_CHARS = (2048, 512, 128)
+"""Characters of ``meta`` JSON at most: fixed part, per pose, per view (``meta`` is stored as UTF-32)."""
 
 MIN_IMAGE_SIDE = 4
 """Smallest rendered image side (px) a ``scale`` may produce."""
@@ -167,12 +172,27 @@ class LocalSim:
         unknown = [n for n in names if n not in self.bundle.rig.cameras]
         if unknown:
             raise RequestError(f"unknown camera(s) {unknown}; scene {self.id!r} has {self.cameras}")
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise RequestError(f"camera(s) {twice} asked for twice: name each camera once")
         if not (math.isfinite(scale) and scale > 0):
             raise RequestError(f"scale must be a positive finite number, got {scale}")
         small = [n for n in self.cameras if min(self.image_size(n, scale)) < MIN_IMAGE_SIDE]
         if small:
             raise RequestError(f"scale {scale} makes camera(s) {small} smaller than {MIN_IMAGE_SIDE} px")
         return names
+
+    def reply_bytes(self, poses: int, cameras: Sequence[str], bev: bool, scale: float, depth: bool) -> int:
+        """Upper bound of the ``encode_npz`` size of ``poses`` frames of checked ``cameras`` (before rendering them).
+
+        Pixels x channels (uint8 RGB, float32 depth) per view and pose, plus headers and ``meta``.
+        """
+        pixels = sum(w * h for w, h in (self.image_size(n, scale) for n in cameras))
+        data = pixels * (3 + 4 * depth) + 3 * self.bundle.rig.bev.width * self.bundle.rig.bev.height * bev
+        views = len(cameras) * (1 + depth) + bev
+        fixed, per_pose, per_view = _META_CHARS
+        meta = 4 * (fixed + per_pose * poses + per_view * views)
+        return poses * data + _NPZ_ARRAY_OVERHEAD * (views + 1) + meta
 
     def info(self) -> dict[str, Any]:
         """What ``GET /scenes/{id}`` returns: rig, image sizes, BEV spec, bounds, slot map, metadata."""

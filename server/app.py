@@ -1,15 +1,16 @@
 """``create_app``: the FastAPI app over a scenes folder (or given bundles), with error mapping and metrics.
 
 Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is allowed:
-422 bad request values, 404 unknown scene or route, 401 missing key, 413 body too large,
-503 (with Retry-After) when the render queue is full.
+422 bad request values, 404 unknown scene or route, 401 missing key, 413 body or reply too large,
+503 (with Retry-After) when the render queue or the reply budget is full.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -20,6 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from parksim.bundle import Bundle
 from parksim.client import LocalSim, RequestError
 
+from .budget import BudgetFull, ReplyBudget, ReplyTooLarge
+from .docs import install_docs
 from .metrics import Metrics
 from .pool import PoolBusy, RenderPool
 from .routes import VIEWER_DIR, protected, router
@@ -70,8 +73,13 @@ def _install_errors(app: FastAPI) -> None:
     async def _unknown_scene(_: Request, exc: UnknownScene) -> JSONResponse:
         return _error(404, str(exc.args[0]))
 
+    @app.exception_handler(ReplyTooLarge)
+    async def _too_large(_: Request, exc: ReplyTooLarge) -> JSONResponse:
+        return _error(413, str(exc))
+
     @app.exception_handler(PoolBusy)
-    async def _busy(_: Request, exc: PoolBusy) -> JSONResponse:
+    @app.exception_handler(BudgetFull)
+    async def _busy(_: Request, exc: PoolBusy | BudgetFull) -> JSONResponse:
         return _error(503, str(exc), {"Retry-After": str(exc.retry_after)})
 
     @app.exception_handler(StarletteHTTPException)
@@ -84,22 +92,22 @@ def _install_errors(app: FastAPI) -> None:
         return _error(exc.status_code, str(detail), getattr(exc, "headers", None))
 
 
-def _install_middleware(app: FastAPI) -> None:
-    """Body size limit and per-request metrics (labelled by route template, not by raw path)."""
+def _install_middleware(app: FastAPI, limit: int, metrics: Metrics) -> None:
+    """Body size limit (``limit`` bytes) and per-request metrics (labelled by route template, not by raw path)."""
 
     @app.middleware("http")
     async def _observe(request: Request, call_next: Any) -> Any:
         start = time.perf_counter()
-        limit = app.state.settings.max_body_bytes
         length = request.headers.get("content-length")
-        if request.method in ("POST", "PUT", "PATCH") and (length is None or not length.isdigit() or int(length) > limit):
+        bad_length = length is None or not length.isdigit() or int(length) > limit
+        if request.method in ("POST", "PUT", "PATCH") and bad_length:
             response = _error(413 if length and length.isdigit() else 411,
                               f"the request body must come with a Content-Length of at most {limit} bytes")
         else:
             response = await call_next(request)
         route = request.scope.get("route")
-        app.state.metrics.request(getattr(route, "path", "unmatched"), request.method, response.status_code,
-                                  time.perf_counter() - start)
+        metrics.request(getattr(route, "path", "unmatched"), request.method, response.status_code,
+                        time.perf_counter() - start)
         return response
 
 
@@ -109,17 +117,19 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     settings = settings or Settings()
     registry = _registry(scenes)
 
-    app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__,
+    app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__, docs_url=None, redoc_url=None,
                   description="Renders of reconstructed parking garages (four fisheye views and a BEV) at any ego "
                               "pose, for planners in closed loop. Poses are T_world_vehicle in metres and radians.")
-    app.state.settings = settings
-    app.state.registry = registry
-    app.state.metrics = Metrics()
-    app.state.pool = RenderPool(settings.workers, settings.queue_size, settings.render_timeout_s,
-                                settings.retry_after_s)
+    pool = RenderPool(settings.workers, settings.queue_size, settings.render_timeout_s, settings.retry_after_s)
+    budget = ReplyBudget(settings.reply_budget_bytes, settings.retry_after_s)
+    metrics = Metrics(pool.stats, budget.stats)
+    # What server.deps hands to the handlers:
+    app.state.settings, app.state.registry, app.state.pool, app.state.budget, app.state.metrics = (
+        settings, registry, pool, budget, metrics)
     _install_errors(app)
-    _install_middleware(app)
+    _install_middleware(app, settings.max_body_bytes, metrics)
     app.include_router(router)
     app.include_router(protected)
     app.mount("/viewer", StaticFiles(directory=VIEWER_DIR), name="viewer")
+    install_docs(app)
     return app

@@ -14,6 +14,7 @@ import numpy as np
 
 from parksim.client import Frame, LocalSim, RequestError, encode_npz
 
+from .budget import ReplyTooLarge
 from .pool import RenderPool
 from .scenes import SceneRegistry, check_pose
 from .schemas import Pose, RenderMeta
@@ -46,7 +47,7 @@ def encode_image(image: np.ndarray, fmt: Literal["png", "jpeg"], jpeg_quality: i
 
 @dataclass
 class RenderJob:
-    """A validated request: which scene, poses, views and encoding."""
+    """A validated request: which scene, poses, views and encoding, and its reply size (bytes, upper bound)."""
 
     sim: LocalSim
     poses: list[Pose]
@@ -56,12 +57,17 @@ class RenderJob:
     depth: bool
     fmt: Literal["npz", "png", "jpeg"]
     batch: bool
+    reply_bytes: int
 
     @classmethod
     def build(cls, registry: SceneRegistry, settings: Settings, scene: str | None, poses: list[Pose],
               cameras: list[str] | None, bev: bool, scale: float, depth: bool,
-              fmt: Literal["npz", "png", "jpeg"] = "npz", batch: bool = False) -> "RenderJob":
-        """Check everything that can be checked before rendering; ``RequestError`` says what is wrong."""
+              fmt: Literal["npz", "png", "jpeg"] = "npz", batch: bool = False) -> RenderJob:
+        """Check everything that can be checked before rendering; ``RequestError`` says what is wrong,
+        ``ReplyTooLarge`` when the reply would exceed ``settings.max_reply_bytes``.
+
+        A PNG/JPEG of one view is counted as its raw pixels: the encodings are no larger but for a few bytes per row.
+        """
         sim = registry.get(scene)
         if not settings.min_scale <= scale <= settings.max_scale:
             raise RequestError(f"scale={scale:g} is out of range: it must be in [{settings.min_scale:g}, "
@@ -78,7 +84,14 @@ class RenderJob:
             raise RequestError(f"depth is only returned in format=npz, not {fmt}")
         for pose in poses:
             check_pose(sim, pose, settings)
-        return cls(sim, poses, names, bev, scale, depth, fmt, batch)
+        size = sim.reply_bytes(len(poses), names, bev, scale, depth)
+        if size > settings.max_reply_bytes:
+            raise ReplyTooLarge(f"the reply would be {size} bytes ({size / 2**20:.1f} MiB: {len(poses)} pose(s) x "
+                                f"{len(names)} camera(s){' + BEV' if bev else ''}{' with depth' if depth else ''} at "
+                                f"scale {scale:g}), over this server's limit of {settings.max_reply_bytes} bytes "
+                                f"({settings.max_reply_bytes / 2**20:.1f} MiB) per request: ask for fewer poses or "
+                                f"views, a smaller scale, or no depth")
+        return cls(sim, poses, names, bev, scale, depth, fmt, batch, size)
 
     def _run(self, jpeg_quality: int) -> tuple[bytes, dict[str, float], list[Frame]]:
         """Render every pose and encode (runs on a pool thread)."""

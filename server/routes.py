@@ -1,99 +1,133 @@
-"""HTTP handlers: /render (GET one pose, POST a batch, single-view images), /scenes, /healthz, /metrics, viewer."""
+"""HTTP handlers: /render (GET one pose, POST a batch, single-view images), /scenes, /healthz, /metrics, viewer.
+
+Handlers take their state through the typed dependencies of ``deps``; each route documents only the errors it
+can answer.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path as PathParam, Query, Request
-from fastapi.responses import FileResponse, PlainTextResponse, Response
+from fastapi import APIRouter, Depends, Query
+from fastapi import Path as PathParam
+from fastapi.responses import FileResponse, Response
+
+from parksim.client import NPZ_LAYOUT
 
 from .auth import require_api_key
-from .jobs import RenderJob, Reply
+from .deps import BudgetDep, MetricsDep, PoolDep, RegistryDep, RendererDep, SettingsDep
+from .jobs import RenderJob
 from .metrics import CONTENT_TYPE
-from .schemas import (ErrorMessage, Health, RenderBatchRequest, RenderQuery, SceneInfo, SceneList, SceneSummary,
-                      ViewQuery, parse_cameras, parse_pose)
+from .replies import TIMING_HEADERS
+from .schemas import (
+    ErrorMessage,
+    Health,
+    RenderBatchRequest,
+    RenderQuery,
+    SceneInfo,
+    SceneList,
+    SceneSummary,
+    ViewQuery,
+    parse_cameras,
+    parse_pose,
+)
 
 __all__ = ["router", "VIEWER_DIR"]
 
 VIEWER_DIR = Path(__file__).parent / "viewer"
-_ERRORS = {code: {"model": ErrorMessage} for code in (401, 404, 413, 422, 503)}
-_IMAGE_REPLY = {200: {"content": {"application/x-npz": {}, "image/png": {}, "image/jpeg": {}},
-                      "description": "npz (uint8 images, float32 depth, JSON meta) or one PNG/JPEG image"}}
-router = APIRouter(responses=_ERRORS)
-protected = APIRouter(dependencies=[Depends(require_api_key)], responses=_ERRORS)
+_WHY = {401: "missing or wrong API key (only when the server was started with one)",
+        404: "unknown scene (GET /scenes lists the loaded ones)",
+        411: "a POST body without a Content-Length header",
+        413: "the reply would exceed the server's max_reply_bytes per request (the message gives both sizes)",
+        422: "an invalid request value (the message says which and what is allowed)",
+        503: "the render queue or the reply budget is full, or a render timed out: retry after Retry-After seconds"}
+_BODY_TOO_LARGE = "the body exceeds max_body_bytes, or " + _WHY[413].removeprefix("the ")
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+_NPZ_HELP = f"npz (uncompressed numpy.savez):\n\n```\n{NPZ_LAYOUT}\n```"
 
 
-def _response(request: Request, reply: Reply) -> Response:
-    """The reply with its timing headers; the job's stage times go to the metrics."""
-    t = reply.meta.timings_ms
-    n_images = len(reply.meta.cameras) + int(reply.meta.bev)
-    request.app.state.metrics.render({k: v / 1000 for k, v in t.items()}, n_images * len(reply.meta.poses))
-    headers = {"X-Render-Timings": ", ".join(f"{k}={v:.1f}ms" for k, v in t.items()),
-               "X-Render-Time-Ms": f"{t.get('views', 0) + t.get('bev', 0):.1f}", "Cache-Control": "no-store"}
-    return Response(reply.body, media_type=reply.media_type, headers=headers)
+def _errors(*codes: int, too_large: str = _WHY[413]) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` for the error ``codes`` a route can answer (``too_large`` says what 413 means there)."""
+    out: dict[int | str, dict[str, Any]] = {}
+    for code in codes:
+        out[code] = {"model": ErrorMessage, "description": too_large if code == 413 else _WHY[code]}
+        if code == 503:
+            out[code]["headers"] = {"Retry-After": {"description": "seconds to wait before retrying",
+                                                    "schema": {"type": "integer"}}}
+    return out
 
 
-async def _run(request: Request, job: RenderJob) -> Response:
-    state = request.app.state
-    return _response(request, await job.run(state.pool, state.settings.jpeg_quality))
+def _reply(description: str, *media_types: str) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI 200 response of a render route: its media types and the X-Render-* headers."""
+    return {200: {"description": description, "content": {m: _BINARY for m in media_types},
+                  "headers": {name: {"description": text, "schema": {"type": "string"}}
+                              for name, text in TIMING_HEADERS.items()}}}
 
 
-@router.get("/healthz", response_model=Health, summary="liveness, loaded scenes, pool state and limits")
-def healthz(request: Request) -> Health:
-    s = request.app.state.settings
-    return Health(status="ok", scenes=request.app.state.registry.ids, pool=request.app.state.pool.stats(),
-                  limits={"min_scale": s.min_scale, "max_scale": s.max_scale, "max_batch": s.max_batch,
-                          "pose_margin_m": s.pose_margin_m, "max_tilt_rad": s.max_tilt_rad})
+router = APIRouter()
+protected = APIRouter(dependencies=[Depends(require_api_key)])
 
 
-@protected.get("/metrics", response_class=PlainTextResponse, summary="Prometheus metrics (text format 0.0.4)")
-def metrics(request: Request) -> PlainTextResponse:
-    return PlainTextResponse(request.app.state.metrics.text(request.app.state.pool.stats()), media_type=CONTENT_TYPE)
+@router.get("/healthz", response_model=Health, summary="liveness, loaded scenes, pool and reply budget state, limits")
+def healthz(registry: RegistryDep, settings: SettingsDep, pool: PoolDep, budget: BudgetDep) -> Health:
+    return Health(status="ok", scenes=registry.ids, pool=pool.stats(), replies=budget.stats(),
+                  limits={name: getattr(settings, name) for name in ("min_scale", "max_scale", "max_batch",
+                                                                     "pose_margin_m", "max_tilt_rad",
+                                                                     "max_reply_bytes")})
 
 
-@protected.get("/scenes", response_model=SceneList, summary="the loaded scenes")
-def scenes(request: Request) -> SceneList:
-    sims = request.app.state.registry.sims.values()
-    return SceneList(scenes=[SceneSummary(id=s.id, gaussians=len(s.bundle.scene), cameras=s.cameras) for s in sims])
+@protected.get("/metrics", response_class=Response, summary="Prometheus metrics (text format 0.0.4)",
+               responses={200: {"content": {CONTENT_TYPE: {"schema": {"type": "string"}}}}, **_errors(401)})
+def metrics(m: MetricsDep) -> Response:
+    return Response(m.text(), media_type=CONTENT_TYPE)
 
 
-@protected.get("/scenes/{scene_id}", response_model=SceneInfo, summary="rig, BEV spec, bounds and slot map of a scene")
-def scene_info(request: Request, scene_id: Annotated[str, PathParam(description="scene id from GET /scenes")]
+@protected.get("/scenes", response_model=SceneList, summary="the loaded scenes", responses=_errors(401))
+def scenes(registry: RegistryDep) -> SceneList:
+    return SceneList(scenes=[SceneSummary(id=s.id, gaussians=len(s.bundle.scene), cameras=s.cameras)
+                             for s in registry.sims.values()])
+
+
+@protected.get("/scenes/{scene_id}", response_model=SceneInfo, summary="rig, BEV spec, bounds and slot map of a scene",
+               responses=_errors(401, 404, 422))
+def scene_info(registry: RegistryDep, settings: SettingsDep,
+               scene_id: Annotated[str, PathParam(max_length=200, description="scene id from GET /scenes")]
                ) -> SceneInfo:
-    sim = request.app.state.registry.get(scene_id)
-    return SceneInfo(**sim.info(), pose_margin_m=request.app.state.settings.pose_margin_m)
+    return SceneInfo(**registry.get(scene_id).info(), pose_margin_m=settings.pose_margin_m)
 
 
-@protected.get("/render", responses=_IMAGE_REPLY, response_class=Response,
-               summary="render the requested views at one pose (npz, or one PNG/JPEG view)")
-async def render_get(request: Request, q: Annotated[RenderQuery, Query()]) -> Response:
-    state = request.app.state
-    job = RenderJob.build(state.registry, state.settings, q.scene, [parse_pose(q.pose)], parse_cameras(q.cameras),
-                          q.bev, q.scale, q.depth, q.format)
-    return await _run(request, job)
+@protected.get("/render", response_class=Response, summary="render the requested views at one pose (npz, or one "
+               "PNG/JPEG view)", responses={**_reply(f"{_NPZ_HELP}\n\nor, with format=png/jpeg, one view as an image",
+                                                     "application/x-npz", "image/png", "image/jpeg"),
+                                            **_errors(401, 404, 413, 422, 503)})
+async def render_get(q: Annotated[RenderQuery, Query()], registry: RegistryDep, settings: SettingsDep,
+                     renderer: RendererDep) -> Response:
+    return await renderer.respond(RenderJob.build(registry, settings, q.scene, [parse_pose(q.pose)],
+                                                  parse_cameras(q.cameras), q.bev, q.scale, q.depth, q.format))
 
 
-@protected.post("/render", responses=_IMAGE_REPLY, response_class=Response,
-                summary="render the same views at a batch of poses in one request (npz, arrays stacked per pose)")
-async def render_post(request: Request, body: RenderBatchRequest) -> Response:
-    state = request.app.state
-    job = RenderJob.build(state.registry, state.settings, body.scene, body.poses, body.cameras, body.bev, body.scale,
-                          body.depth, batch=True)
-    return await _run(request, job)
+@protected.post("/render", response_class=Response, summary="render the same views at a batch of poses in one "
+                "request (npz, arrays stacked per pose)",
+                responses={**_reply(_NPZ_HELP, "application/x-npz"),
+                           **_errors(401, 404, 411, 413, 422, 503, too_large=_BODY_TOO_LARGE)})
+async def render_post(body: RenderBatchRequest, registry: RegistryDep, settings: SettingsDep,
+                      renderer: RendererDep) -> Response:
+    return await renderer.respond(RenderJob.build(registry, settings, body.scene, body.poses, body.cameras, body.bev,
+                                                  body.scale, body.depth, batch=True))
 
 
-@protected.get("/render/{view}.{ext}", responses=_IMAGE_REPLY, response_class=Response,
-               summary="one view as an image: a camera name or 'bev'")
-async def render_view(request: Request,
-                      view: Annotated[str, PathParam(max_length=100, description="camera name, or bev")],
+@protected.get("/render/{view}.{ext}", response_class=Response, summary="one view as an image: a camera name or 'bev'",
+               responses={**_reply("the view as a PNG or JPEG image", "image/png", "image/jpeg"),
+                          **_errors(401, 404, 413, 422, 503)})
+async def render_view(view: Annotated[str, PathParam(max_length=100, description="camera name, or bev")],
                       ext: Annotated[Literal["png", "jpg", "jpeg"], PathParam(description="image format")],
-                      q: Annotated[ViewQuery, Query()]) -> Response:
-    state = request.app.state
+                      q: Annotated[ViewQuery, Query()], registry: RegistryDep, settings: SettingsDep,
+                      renderer: RendererDep) -> Response:
     bev = view == "bev"
-    job = RenderJob.build(state.registry, state.settings, q.scene, [parse_pose(q.pose)], [] if bev else [view], bev,
-                          q.scale, False, "png" if ext == "png" else "jpeg")
-    return await _run(request, job)
+    return await renderer.respond(RenderJob.build(registry, settings, q.scene, [parse_pose(q.pose)],
+                                                  [] if bev else [view], bev, q.scale, False,
+                                                  "png" if ext == "png" else "jpeg"))
 
 
 @router.get("/", include_in_schema=False)

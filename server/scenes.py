@@ -7,8 +7,8 @@ IPM grids and blend weights); renders reuse it. ``check_pose`` keeps poses insid
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 from parksim.bundle import META, BundleError
 from parksim.client import LocalSim, RequestError
@@ -32,7 +32,7 @@ class SceneRegistry:
             raise BundleError("no scene to serve")
 
     @classmethod
-    def from_dir(cls, scenes_dir: str | Path) -> "SceneRegistry":
+    def from_dir(cls, scenes_dir: str | Path) -> SceneRegistry:
         """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle)."""
         root = Path(scenes_dir)
         if not root.is_dir():
@@ -59,7 +59,8 @@ def check_pose(sim: LocalSim, pose: Pose, settings: Settings) -> None:
     """``RequestError`` unless ``pose`` lies within the scene bounds plus the margin and is not tilted too far."""
     m = settings.pose_margin_m
     z_lo, z_hi = sim.bounds["z"]
-    limits = {"x": (sim.bounds["x"][0] - m, sim.bounds["x"][1] + m), "y": (sim.bounds["y"][0] - m, sim.bounds["y"][1] + m),
+    limits = {"x": (sim.bounds["x"][0] - m, sim.bounds["x"][1] + m),
+              "y": (sim.bounds["y"][0] - m, sim.bounds["y"][1] + m),
               "z": (z_lo - 1.0, z_hi)}
     for axis, (lo, hi) in limits.items():
         v = getattr(pose, axis)
@@ -70,6 +71,7 @@ def check_pose(sim: LocalSim, pose: Pose, settings: Settings) -> None:
     for angle in ("roll", "pitch"):
         v = getattr(pose, angle)
         if abs(v) > settings.max_tilt_rad:
-            raise RequestError(f"pose {angle}={v:g} rad is too tilted: |{angle}| must be <= {settings.max_tilt_rad:g} rad")
+            raise RequestError(f"pose {angle}={v:g} rad is too tilted: |{angle}| must be <= "
+                               f"{settings.max_tilt_rad:g} rad")
     if abs(pose.yaw) > 1e6 * math.pi:
         raise RequestError(f"pose yaw={pose.yaw:g} rad is too large: |yaw| must be <= {1e6 * math.pi:g} rad")

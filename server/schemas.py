@@ -3,16 +3,37 @@
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
-__all__ = ["Pose", "parse_pose", "parse_cameras", "RenderQuery", "ViewQuery", "RenderBatchRequest", "RenderMeta",
-           "SceneSummary", "SceneList", "SceneInfo", "Health", "ErrorMessage", "POSE_HELP"]
+__all__ = ["Pose", "parse_number", "parse_pose", "parse_cameras", "RenderQuery", "ViewQuery", "RenderBatchRequest",
+           "RenderMeta", "SceneSummary", "SceneList", "SceneInfo", "Health", "ErrorMessage", "POSE_HELP"]
 
 POSE_HELP = ("ego pose T_world_vehicle as 'x,y,yaw' (metres, radians; z = roll = pitch = 0) or "
              "'x,y,z,roll,pitch,yaw'; yaw about world z, rotation Rz(yaw) Ry(pitch) Rx(roll)")
 _MAX_POSE_TEXT = 200
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+"""ASCII decimal float syntax: no digit separators ('1_0'), no other scripts' digits, no 'nan' or 'inf'."""
+
+
+def parse_number(text: str) -> float:
+    """A finite pose value written as an ASCII decimal (``ValueError`` otherwise); the one parser of pose text."""
+    if not _DECIMAL.fullmatch(text.strip(" \t")):
+        raise ValueError(f"pose value {text!r} is not a number in decimal notation (finite; ASCII digits 0-9 with an "
+                         f"optional sign, point and exponent)")
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"pose value {text!r} is not finite; every pose value must be a finite number")
+    return value
+
+
+def _pose_value(value: Any) -> Any:
+    """Text through ``parse_number``; a JSON boolean refused (pydantic would take ``true`` as 1.0); else as given."""
+    if isinstance(value, bool):
+        raise ValueError(f"pose value {value!r} is a boolean, not a number")
+    return parse_number(value) if isinstance(value, str) else value
 
 
 class Pose(BaseModel):
@@ -29,13 +50,15 @@ class Pose(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _from_list(cls, value: Any) -> Any:
-        """Accept ``[x, y, yaw]`` and ``[x, y, z, roll, pitch, yaw]`` as well as an object."""
+        """Accept ``[x, y, yaw]`` and ``[x, y, z, roll, pitch, yaw]`` as well as an object; text values go
+        through ``parse_number``."""
         if isinstance(value, (list, tuple)):
-            if len(value) == 3:
-                return dict(zip(("x", "y", "yaw"), value))
-            if len(value) == 6:
-                return dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), value))
-            raise ValueError(f"a pose list needs 3 values (x, y, yaw) or 6 (x, y, z, roll, pitch, yaw), got {len(value)}")
+            if len(value) not in (3, 6):
+                raise ValueError(f"a pose list needs 3 values (x, y, yaw) or 6 (x, y, z, roll, pitch, yaw), "
+                                 f"got {len(value)}")
+            value = dict(zip(("x", "y", "yaw") if len(value) == 3 else ("x", "y", "z", "roll", "pitch", "yaw"), value))
+        if isinstance(value, dict):
+            return {k: _pose_value(v) for k, v in value.items()}
         return value
 
     def values(self) -> list[float]:
@@ -47,30 +70,18 @@ def parse_pose(text: str) -> Pose:
     """``'x,y,yaw'`` or ``'x,y,z,roll,pitch,yaw'`` -> ``Pose``; ``ValueError`` says what is wrong."""
     if len(text) > _MAX_POSE_TEXT:
         raise ValueError(f"pose text is longer than {_MAX_POSE_TEXT} characters")
-    parts = [p.strip() for p in text.split(",")]
+    parts = text.split(",")
     if len(parts) not in (3, 6):
         raise ValueError(f"pose needs 3 comma-separated numbers (x,y,yaw) or 6 (x,y,z,roll,pitch,yaw), "
                          f"got {len(parts)} in {text!r}")
-    values = []
-    for p in parts:
-        try:
-            v = float(p)
-        except ValueError:
-            raise ValueError(f"pose value {p!r} is not a number (pose {text!r})") from None
-        if not math.isfinite(v):
-            raise ValueError(f"pose value {p!r} is not finite; every pose value must be a finite number")
-        values.append(v)
-    return Pose.model_validate(values)
+    return Pose.model_validate([parse_number(p) for p in parts])
 
 
 def parse_cameras(text: str | None) -> list[str] | None:
     """``'front,left'`` -> ``['front', 'left']``; '' -> [] (no camera: BEV only); None -> None (all cameras)."""
     if text is None:
         return None
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    if len(set(names)) != len(names):
-        raise ValueError(f"cameras lists a camera twice: {text!r}")
-    return names
+    return [n.strip() for n in text.split(",") if n.strip()]
 
 
 def _checked(parse: Any) -> AfterValidator:
@@ -174,6 +185,8 @@ class Health(BaseModel):
     status: Literal["ok"]
     scenes: list[str]
     pool: dict[str, int]
+    replies: dict[str, int] = Field(description="reply byte budget: budget_bytes, in_flight_bytes (reserved by "
+                                                "replies being rendered or sent), rejected (answered 503)")
     limits: dict[str, float]
 
 

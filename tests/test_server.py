@@ -15,6 +15,8 @@ import pytest
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings as hsettings, strategies as st
 
+from prometheus_client.parser import text_string_to_metric_families
+
 from parksim.client import LocalSim, RemoteSim, decode_npz
 from server import Settings, create_app
 from server.auth import check_bind
@@ -90,6 +92,8 @@ def test_batch_post(client):
     ({"pose": "1,two,3"}, 422, "not a number"),
     ({"pose": "nan,0,0"}, 422, "finite"),
     ({"pose": "1,inf,0"}, 422, "finite"),
+    ({"pose": "1_2,0,0"}, 422, "not a number in decimal notation"),
+    ({"pose": "\u0661\u0662,0,0"}, 422, "not a number in decimal notation"),
     ({"pose": "500,0,0"}, 422, "x must be in"),
     ({"pose": "10,-40,0"}, 422, "y must be in"),
     ({"pose": "10,0,9,0,0,0"}, 422, "z must be in"),
@@ -97,7 +101,7 @@ def test_batch_post(client):
     ({}, 422, "pose: Field required"),
     ({"pose": POSE, "scene": "garage9"}, 404, "loaded scenes: ['tiny']"),
     ({"pose": POSE, "cameras": "front,top"}, 422, "has ['front', 'rear', 'left', 'right']"),
-    ({"pose": POSE, "cameras": "front,front"}, 422, "twice"),
+    ({"pose": POSE, "cameras": "front,front"}, 422, "['front'] asked for twice"),
     ({"pose": POSE, "scale": "3"}, 422, "[0.05, 2]"),
     ({"pose": POSE, "scale": "0"}, 422, "[0.05, 2]"),
     ({"pose": POSE, "scale": "nan"}, 422, "[0.05, 2]"),
@@ -129,6 +133,10 @@ def test_bad_paths_are_4xx(client, path, status, words):
     ({"poses": [[12, 0]]}, 422, "3 values"),
     ({"poses": [[12, 0, 0]], "scale": 10}, 422, "[0.05, 2]"),
     ({"poses": [[12, 0, 0]], "cameras": ["up"]}, 422, "unknown camera"),
+    ({"poses": [[12, 0, 0]], "cameras": ["rear", "front", "rear"]}, 422, "['rear'] asked for twice"),
+    ({"poses": [["1_2", 0, 0]]}, 422, "'1_2' is not a number in decimal notation"),
+    ({"poses": [{"x": "\u0661\u0662", "y": 0, "yaw": 0}]}, 422, "is not a number in decimal notation"),
+    ({"poses": [[12, True, 0]]}, 422, "boolean"),
     (b'{"poses": [[NaN, 0, 0]]}', 422, "finite"),
     (b"{not json", 422, "not valid JSON"),
     (b"x" * (2 << 20), 413, "Content-Length"),
@@ -223,12 +231,27 @@ def test_api_key_and_bind_policy(bundle_dir):
         check_bind("0.0.0.0", None)
 
 
+def _samples(text: str) -> dict[str, list]:
+    """Prometheus exposition -> samples by name, parsed by prometheus_client's own parser."""
+    out: dict[str, list] = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            out.setdefault(sample.name, []).append(sample)
+    return out
+
+
 def test_metrics_and_docs(client):
     client.get("/render", params={"pose": POSE, "cameras": "front", **SMALL})
-    text = client.get("/metrics").text
-    assert 'parksim_requests_total{route="/render",method="GET",status="200"}' in text
-    assert 'parksim_render_stage_seconds_bucket{stage="views",le="+Inf"}' in text
-    assert "parksim_errors_total" in text and "parksim_request_seconds_count" in text
+    client.get("/render", params={"pose": "1,2"})
+    samples = _samples(client.get("/metrics").text)
+    requests = {(s.labels["route"], s.labels["method"], s.labels["status"]): s.value
+                for s in samples["parksim_requests_total"]}
+    assert requests[("/render", "GET", "200")] >= 1 and requests[("/render", "GET", "422")] >= 1
+    assert any(s.labels == {"status": "422"} and s.value >= 1 for s in samples["parksim_errors_total"])
+    assert any(s.labels == {"stage": "views", "le": "+Inf"} and s.value >= 1
+               for s in samples["parksim_render_stage_seconds_bucket"])
+    assert samples["parksim_request_seconds_count"] and samples["parksim_images_total"][0].value >= 1
+    assert samples["parksim_render_capacity"][0].value == 9 and samples["parksim_reply_budget_bytes"][0].value > 0
     spec = client.get("/openapi.json").json()
     params = {p["name"]: p for p in spec["paths"]["/render"]["get"]["parameters"]}
     assert set(params) >= {"pose", "scene", "cameras", "bev", "scale", "depth", "format"}

@@ -21,6 +21,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--queue", type=int, dest="queue_size", help="requests that may wait before 503 (default 8)")
     p.add_argument("--max-scale", type=float, help="largest resolution factor (default 2.0)")
     p.add_argument("--max-batch", type=int, help="most poses per POST /render (default 16)")
+    p.add_argument("--max-reply-mib", type=float, help="largest reply one request may ask for, counted before "
+                   "rendering; larger: 413 (default 64)")
+    p.add_argument("--reply-budget-mib", type=float, help="reply MiB rendered or being sent at once over all "
+                   "clients; beyond: 503 (default 256)")
     return p
 
 
@@ -32,9 +36,15 @@ def run(args: argparse.Namespace) -> int:
     from server.auth import check_bind
 
     settings = Settings.from_env(api_key=args.api_key, workers=args.workers, queue_size=args.queue_size,
-                                 max_scale=args.max_scale, max_batch=args.max_batch)
+                                 max_scale=args.max_scale, max_batch=args.max_batch,
+                                 max_reply_bytes=_mib(args.max_reply_mib),
+                                 reply_budget_bytes=_mib(args.reply_budget_mib))
     check_bind(args.host, settings.api_key)
     app = create_app(args.scenes, settings)
     print(f"serving {', '.join(app.state.registry.ids)} on http://{args.host}:{args.port} (viewer at /, docs at /docs)")
     uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
     return 0
+
+
+def _mib(value: float | None) -> int | None:
+    return None if value is None else int(value * 2**20)
