@@ -5,10 +5,12 @@ They serve ParkGaussian twice: frozen, as teacher/student inside the slot-aware 
 downstream evaluation of reconstructed BEVs (``detect`` + ``evaluate``).
 """
 
+from .backbone import PointMaps
 from .decode import Detections, DecodeOptions, MarkingPoint, Slot
-from .dmpr import DMPRDetector, PointMaps, load_detector
+from .dmpr import DMPRDetector
 from .gcn import GCNDetector
 from .labels_ps2 import LabelError, SlotLabels, read_ps2_labels
+from .registry import DETECTORS, load_detector
 
-__all__ = ["DMPRDetector", "GCNDetector", "PointMaps", "load_detector", "Detections", "DecodeOptions",
+__all__ = ["DMPRDetector", "GCNDetector", "DETECTORS", "PointMaps", "load_detector", "Detections", "DecodeOptions",
            "MarkingPoint", "Slot", "SlotLabels", "LabelError", "read_ps2_labels"]

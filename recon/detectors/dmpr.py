@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -11,7 +10,7 @@ from torch import Tensor, nn
 from .backbone import Backbone, PointHead, PointMaps, prepare_input
 from .decode import DecodeOptions, Detections, MarkingPoint, Slot, decode_points, infer_slots
 
-__all__ = ["DMPRDetector", "load_detector"]
+__all__ = ["DMPRDetector"]
 
 
 class DMPRDetector(nn.Module):
@@ -69,20 +68,3 @@ class DMPRDetector(nn.Module):
         """Constructor arguments (stored in checkpoints)."""
         return {"width": self.width, "input_size": self.input_size}
 
-
-def load_detector(path: str | Path, map_location: str = "cpu") -> nn.Module:
-    """A trained detector from ``model.pt`` (or its folder), in eval mode."""
-    from .gcn import GCNDetector
-
-    path = Path(path)
-    if path.is_dir():
-        path = path / "model.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: detector checkpoint not found")
-    ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    classes = {"dmpr": DMPRDetector, "gcn": GCNDetector}
-    if not isinstance(ckpt, dict) or ckpt.get("kind") not in classes:
-        raise ValueError(f"{path}: not a detector checkpoint (expected kind 'dmpr' or 'gcn')")
-    model = classes[ckpt["kind"]](**ckpt["config"])
-    model.load_state_dict(ckpt["state_dict"])
-    return model.eval()
