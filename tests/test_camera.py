@@ -195,3 +195,140 @@ def test_dict_round_trip_and_bad_input():
         OpenCVFisheye(64, 48, 50.0, 50.0, 32.0, 24.0, [0, 0])
     with pytest.raises(ValueError, match="points\\[..., 3\\]"):
         opencv_cam().project(torch.zeros(5, 2))
+
+
+# --- magnitudes: only a point's direction matters ------------------------------------------------------
+
+def pinhole_cam() -> Pinhole:
+    return Pinhole(640, 480, 300.0, 310.0, 319.5, 239.5, max_fov_deg=120.0)
+
+
+LENSES = [opencv_cam, woodscape_cam, pinhole_cam]
+LENS_IDS = ["opencv", "woodscape", "pinhole"]
+MAX_ULPS = 8
+"""Rounding allowed against a float64 reference, in ulps of the dtype at the largest magnitude compared: float32
+projections of unit points are up to ~5 ulps off float64 (the lens' own rounding), float64 ones up to 6 (the
+reference's own normalisation rounds the direction)."""
+
+
+def ulp(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """np.spacing of ``dtype`` at |x|, as float64."""
+    if dtype == torch.float32:
+        return f32_ulp(x)
+    return torch.from_numpy(np.asarray(np.spacing(x.detach().abs().double().numpy()), dtype=np.float64))
+
+
+def magnitude_cases(dtype: torch.dtype) -> torch.Tensor:
+    """Points ``[M, 3]`` in ``dtype``: 0 to 150 deg off the axis, two azimuths, from near the centre to float max."""
+    rays = []
+    for deg in (0.0, 10.0, 45.0, 89.0, 100.0, 150.0):
+        for az in (30.0, 200.0):
+            t, a = math.radians(deg), math.radians(az)
+            rays.append([math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t)])
+    big = [1e155, 1e200, 1e300] if dtype == torch.float64 else []
+    small = [1e-150] if dtype == torch.float64 else [1e-18]   # above the centre's sqrt(tiny)
+    mags = [1.0, 1e10, 1e20, 1e30, *small, *big, torch.finfo(dtype).max]
+    return torch.cat([(torch.tensor(rays, dtype=torch.float64) * m).to(dtype) for m in mags])
+
+
+def unit_points(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Float64 unit points of ``p`` and ``m, n`` with ``|p| = m n`` (a product that may overflow float64)."""
+    p = p.detach().double()
+    m = p.abs().amax(-1, keepdim=True)
+    n = (p / m).norm(dim=-1, keepdim=True)
+    return p / m / n, m, n
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("make", LENSES, ids=LENS_IDS)
+def test_any_magnitude_projects_as_its_unit_point(make, dtype):
+    """Far points (up to float max) and near ones land where their unit point does, with the same validity;
+    the gradient is the unit point's divided by |p|; ``theta_of`` agrees. Squaring |p| used to overflow:
+    45 deg at 1e155 (float64) or 1e20 (float32) went to the principal point flagged valid."""
+    cam = make()
+    p = magnitude_cases(dtype).requires_grad_(True)
+    unit, m, n = unit_points(p)
+    unit.requires_grad_(True)
+    uv, valid = cam.project(p)
+    ref, ref_valid = cam.project(unit)
+    w = torch.tensor([0.7, -1.3], dtype=torch.float64)
+    (uv * w.to(dtype)).sum().backward()
+    (ref * w).sum().backward()
+    assert torch.equal(valid, ref_valid)
+    assert ((uv.double() - ref).abs().amax(-1) <= MAX_ULPS * ulp(ref.detach().abs().amax(-1), dtype)).all()
+    assert torch.isfinite(p.grad).all()
+    # du/dp is homogeneous of degree -1; tolerance scaled at the gradient's largest component
+    g = p.grad.double() * m * n
+    assert ((g - unit.grad).abs().amax(-1) <= MAX_ULPS * ulp(unit.grad.abs().amax(-1), dtype)).all()
+    theta, ref_theta = cam.theta_of(p.detach()), cam.theta_of(unit.detach())
+    assert ((theta.double() - ref_theta).abs() <= MAX_ULPS * ulp(torch.full_like(ref_theta, math.pi), dtype)).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("make", LENSES, ids=LENS_IDS)
+def test_infinite_or_nan_points_are_invalid_with_zero_gradient(make, dtype):
+    """No direction to trust: NaN pixels, invalid, zero gradient. +inf z used to give the principal point, valid."""
+    inf, nan = math.inf, math.nan
+    p = torch.tensor([[0.0, 0.0, inf], [1.0, 2.0, inf], [inf, 0.0, 1.0], [-inf, 0.0, 0.0], [inf, -inf, 1.0],
+                      [nan, 0.0, 1.0]], dtype=dtype, requires_grad=True)
+    uv, valid = make().project(p)
+    uv.sum().backward()
+    assert not valid.any() and torch.isnan(uv).all()
+    assert torch.equal(p.grad, torch.zeros_like(p))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("make", LENSES, ids=LENS_IDS)
+def test_far_out_pixels_unproject_to_the_rim_ray_in_their_direction(make, dtype):
+    """A pixel however far outside the valid circle gives the unit ray at theta_max in its own direction, with
+    finite gradients; squaring its offset used to overflow (rho = inf: the ray (0, 0, cos theta_max))."""
+    cam = make()
+    fmax = torch.finfo(dtype).max
+    radii = [1e4, 1e20, 1e30, fmax] + ([1e155, 1e300] if dtype == torch.float64 else [])
+    az = torch.tensor([0.3, 2.0, 4.0], dtype=torch.float64)
+    offsets = torch.cat([torch.stack([torch.cos(az), torch.sin(az)], -1) * r for r in radii])
+    uv = (offsets + torch.stack([cam.cx, cam.cy])).to(dtype).requires_grad_(True)
+    ray = cam.unproject(uv)
+    ray.sum().backward()
+    mx = (uv.detach().double() - torch.stack([cam.cx, cam.cy])) / torch.stack([cam.fx, cam.fy])
+    d, _, _ = unit_points(torch.cat([mx, torch.zeros_like(mx[:, :1])], -1))
+    t = torch.tensor(cam.theta_max, dtype=torch.float64)
+    want = torch.cat([d[:, :2] * torch.sin(t), torch.cos(t).expand(len(d), 1)], -1)
+    assert not cam.pixel_valid(uv.detach()).any()
+    assert ((ray.double() - want).abs() <= MAX_ULPS * ulp(torch.ones(()), dtype)).all()
+    assert torch.isfinite(uv.grad).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("make", LENSES, ids=LENS_IDS)
+def test_fused_kernel_lens_at_any_magnitude(make, dtype):
+    """The numba kernels' branch-free lens (``_project_kernels._project``, float64 inside) agrees with itself at the
+    unit point, Jacobian divided by |p|, up to float64 max; infinite coordinates give NaN (the footprint's NaN
+    guard then drops the Gaussian). It used to overflow as ``project`` did."""
+    import numba
+
+    from parksim.render import _project_kernels as pk
+    from parksim.render.project_fast import _MODEL_IDS, _lens
+
+    @numba.njit
+    def batch(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray) -> np.ndarray:
+        out = np.empty((pts.shape[0], 8))
+        for i in range(pts.shape[0]):
+            o = pk._project(model, lens, axis_eps, tiny, pts[i, 0], pts[i, 1], pts[i, 2])
+            for k in range(8):
+                out[i, k] = o[k]
+        return out
+
+    cam = make()
+    args = (_MODEL_IDS[type(cam)], _lens(cam), math.sqrt(torch.finfo(dtype).eps), torch.finfo(dtype).tiny)
+    p = magnitude_cases(dtype).double()
+    if dtype == torch.float32:
+        p = torch.cat([p, magnitude_cases(torch.float64)[-12:]])   # float64 max: the kernel's own range
+    unit, m, n = unit_points(p)
+    got, ref = torch.from_numpy(batch(*args, p.numpy())), torch.from_numpy(batch(*args, unit.numpy()))
+    f64 = torch.float64
+    assert ((got[:, :2] - ref[:, :2]).abs().amax(-1) <= MAX_ULPS * ulp(ref[:, :2].abs().amax(-1), f64)).all()
+    jac, ref_jac = got[:, 2:] * m * n, ref[:, 2:]
+    assert ((jac - ref_jac).abs().amax(-1) <= MAX_ULPS * ulp(ref_jac.abs().amax(-1), f64)).all()
+    inf = torch.tensor([[0.0, 0.0, math.inf], [1.0, 2.0, math.inf], [-math.inf, 0.0, 0.0]], dtype=f64)
+    assert torch.isnan(torch.from_numpy(batch(*args, inf.numpy()))[:, :2]).all()

@@ -34,6 +34,23 @@ def _sinc(theta: Tensor) -> Tensor:
     return torch.sinc(theta / math.pi)
 
 
+def _pow2_normalised(v: Tensor) -> Tensor:
+    """``v[..., k]`` scaled by the power of two that puts its largest |component| in ``[2, 4)``.
+
+    Far and near points then square without overflow or underflow, and a power-of-two scale is
+    exact: no bit of the direction is lost. Autograd sees the scale as a constant, which is right
+    for the scale-invariant maps it feeds. A vector with an infinite or NaN component has no
+    direction to trust: NaN, with zero gradient.
+    """
+    m = v.detach().abs().amax(-1, keepdim=True)
+    finite = torch.isfinite(m) & (m > 0)
+    _, e = torch.frexp(torch.where(finite, m, torch.ones_like(m)))
+    # e >= that of the smallest normal number keeps 2^(2 - e) finite for subnormal m; 2^(2 - e) is normal for any m.
+    e = e.clamp(min=math.frexp(torch.finfo(v.dtype).tiny)[1])
+    scaled = v * torch.ldexp(torch.ones_like(m), 2 - e)
+    return torch.where(torch.isfinite(m), scaled, torch.full_like(v, math.nan))
+
+
 class CameraModel(ABC):
     """Base class: intrinsics as float64 tensors (set ``requires_grad`` to optimise them).
 
@@ -61,7 +78,8 @@ class CameraModel(ABC):
         if not torch.isfinite(values).all():
             raise ValueError(f"{type(self).__name__}: intrinsics must be finite, got {values.tolist()}")
         if self.fx.item() <= 0 or self.fy.item() <= 0:
-            raise ValueError(f"{type(self).__name__}: focal lengths must be positive, got fx={self.fx.item()}, fy={self.fy.item()}")
+            raise ValueError(f"{type(self).__name__}: focal lengths must be positive, "
+                             f"got fx={self.fx.item()}, fy={self.fy.item()}")
         if not 0 < self.max_fov_deg <= 360:
             raise ValueError(f"{type(self).__name__}: max_fov_deg must be in (0, 360], got {max_fov_deg}")
         self.theta_max = self._valid_theta_max()
@@ -80,7 +98,7 @@ class CameraModel(ABC):
         """Serialisable intrinsics, read back by ``parksim.camera.camera_from_dict``."""
 
     @abstractmethod
-    def scaled(self, s: float) -> "CameraModel":
+    def scaled(self, s: float) -> CameraModel:
         """The same lens imaged at ``s`` times the resolution (pixel-centre convention)."""
 
     # --- shared machinery -----------------------------------------------------------
@@ -97,7 +115,8 @@ class CameraModel(ABC):
             return limit
         i = int(bad[0])
         if i == 0:
-            raise ValueError(f"{type(self).__name__}: rho(theta) is not increasing at the optical axis (k={k.tolist()})")
+            raise ValueError(f"{type(self).__name__}: rho(theta) is not increasing at the optical axis "
+                             f"(k={k.tolist()})")
         lo, hi = float(grid[i - 1]), float(grid[i])
         for _ in range(60):
             mid = 0.5 * (lo + hi)
@@ -118,15 +137,32 @@ class CameraModel(ABC):
         return float(self.rho(t, self.k.detach()))
 
     def theta_of(self, points: Tensor) -> Tensor:
-        """Angle off the optical axis, ``atan2(r, z)`` (no gradient guard: for masks and culling)."""
-        return torch.atan2(points[..., :2].norm(dim=-1), points[..., 2])
+        """Angle off the optical axis ``(...)`` of points ``(..., 3)``, ``atan2(r, z)``; no gradient guard (masks)."""
+        p = _pow2_normalised(points)
+        return torch.atan2(p[..., :2].norm(dim=-1), p[..., 2])
 
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """Camera-frame points ``[...,3]`` -> pixels ``uv[...,2]`` and a validity mask ``[...]``.
+        """Project camera-frame points (OpenCV axes: x right, y down, z forward) to pixels.
 
-        Valid means: not the camera centre, within ``theta_max`` and inside the image.
-        Invalid points still get finite pixels (beyond the lens they land on the rim of the
-        image circle in their own direction, never mirrored), and finite gradients.
+        Valid means: not the camera centre (``|p|^2 <= tiny``), within ``theta_max`` and inside
+        the image. Invalid points still get finite pixels (beyond the lens they land on the rim of
+        the image circle in their own direction, never mirrored), and finite gradients. Only the
+        direction matters: a point of any finite magnitude lands where its unit point does. A point
+        with an infinite or NaN coordinate has no direction: NaN pixels, invalid, zero gradient.
+
+        Args:
+            points: ``(..., 3)`` float points in the camera frame, any batch shape.
+
+        Returns:
+            ``(uv, valid)``: pixels ``(..., 2)`` as (column, row) with pixel centres at integers,
+            same dtype as ``points``, and a bool mask ``(...)``.
+
+        Example:
+            >>> from parksim.camera import Pinhole
+            >>> cam = Pinhole(64, 48, 50.0, 50.0, 31.5, 23.5)
+            >>> uv, valid = cam.project(torch.tensor([[0.0, 0.0, 2.0], [1.0, 0.5, 2.0]], dtype=torch.float64))
+            >>> uv.tolist(), valid.tolist()
+            ([[31.5, 23.5], [56.5, 36.0]], [True, True])
         """
         if points.shape[-1] != 3:
             raise ValueError(f"project expects points[..., 3], got shape {tuple(points.shape)}")
@@ -134,13 +170,12 @@ class CameraModel(ABC):
         tiny = torch.finfo(points.dtype).tiny
         axis_eps = math.sqrt(torch.finfo(points.dtype).eps)
 
-        x, y, z = points.unbind(-1)
-        n2 = x * x + y * y + z * z
-        centre = n2 <= tiny
+        centre = (points.detach() ** 2).sum(-1) <= tiny
+        x, y, z = _pow2_normalised(points).unbind(-1)
         x = torch.where(centre, torch.zeros_like(x), x)
         y = torch.where(centre, torch.zeros_like(y), y)
         z = torch.where(centre, torch.ones_like(z), z)
-        n = torch.sqrt(torch.where(centre, torch.ones_like(n2), n2))
+        n = torch.sqrt(x * x + y * y + z * z)
 
         r2 = x * x + y * y
         on_axis = r2 <= (axis_eps * n) ** 2
@@ -194,29 +229,46 @@ class CameraModel(ABC):
         return theta
 
     def unproject(self, uv: Tensor) -> Tensor:
-        """Pixels ``uv[...,2]`` -> unit rays ``[...,3]`` in the camera frame, also past 90 deg.
+        """Unit rays in the camera frame through pixels, also past 90 deg off the axis.
 
         Pixels outside the valid circle give the ray at ``theta_max`` in their direction
-        (``pixel_valid`` tells them apart). Gradients follow the implicit function theorem:
-        one Newton step taken with autograd from the converged, detached root.
+        (``pixel_valid`` tells them apart), however far out. Gradients follow the implicit
+        function theorem: one Newton step taken with autograd from the converged, detached root.
+
+        Args:
+            uv: ``(..., 2)`` float pixels as (column, row), pixel centres at integers.
+
+        Returns:
+            ``(..., 3)`` unit rays, same dtype as ``uv``.
+
+        Example:
+            >>> from parksim.camera import Pinhole
+            >>> cam = Pinhole(64, 48, 50.0, 50.0, 31.5, 23.5)
+            >>> cam.unproject(torch.tensor([[31.5, 23.5], [56.5, 36.0]], dtype=torch.float64)).tolist()
+            [[0.0, 0.0, 1.0], [0.4364357804719848, 0.2182178902359924, 0.8728715609439696]]
         """
         if uv.shape[-1] != 2:
             raise ValueError(f"unproject expects uv[..., 2], got shape {tuple(uv.shape)}")
         _, _, _, _, k = self._intrinsics(uv)
         mx, my = self._normalised(uv)
-        rho2 = mx * mx + my * my
-        nonzero = rho2 > 0
-        rho = torch.sqrt(torch.where(nonzero, rho2, torch.ones_like(rho2)))
+        nonzero = (mx != 0) | (my != 0)
+        rho = torch.hypot(torch.where(nonzero, mx, torch.ones_like(mx)), my)   # 1 at the centre: no 0/0 gradient
         theta0 = self._solve_theta(rho, k)
         interior = nonzero & (theta0 < self.theta_max)
         newton = theta0 - (self.rho(theta0, k) - rho) / self.drho(theta0, k.detach()).detach()
         theta = torch.where(interior, newton, theta0)
         theta = torch.where(nonzero, theta, torch.zeros_like(theta))
-        # sin(theta)/rho = sinc(theta)/q(theta) in the interior; at the rim rho is clamped.
-        rho_used = torch.where(interior | ~nonzero, torch.ones_like(rho), rho)
-        lateral = torch.where(interior | ~nonzero, _sinc(theta) / self.q(theta, k),
-                              torch.sin(theta) / rho_used)
-        ray = torch.stack([lateral * mx, lateral * my, torch.cos(theta)], dim=-1)
+        # sin(theta)/rho = sinc(theta)/q(theta) in the interior; at the rim the pixel gives only a direction,
+        # taken from its power-of-two scaled offset (a far-out or infinite pixel overflows nothing).
+        inner = interior | ~nonzero
+        hx, hy = _pow2_normalised(torch.stack([mx, my], dim=-1)).unbind(-1)
+        h = torch.sqrt(torch.where(inner, torch.ones_like(hx), hx * hx + hy * hy))
+        lateral = _sinc(theta) / self.q(theta, k)
+        rim = torch.sin(theta) / h
+        zero = torch.zeros_like(mx)
+        ray = torch.stack([torch.where(inner, lateral * torch.where(inner, mx, zero), rim * hx),
+                           torch.where(inner, lateral * torch.where(inner, my, zero), rim * hy),
+                           torch.cos(theta)], dim=-1)
         return ray
 
     def __repr__(self) -> str:

@@ -89,15 +89,35 @@ def _rho(model: int, lens: np.ndarray, t: float) -> tuple[float, float]:
 
 
 @numba.njit(inline="always", cache=True)
+def _direction(x: float, y: float, z: float, n2: float) -> tuple[float, float, float, float]:
+    """``(c x, c y, c z, c)``: the point ``(x, y, z)`` with ``|p|^2 = n2`` (overflowed or not) scaled by a
+    power of two ``c`` that brings ``|p|`` into ``[2^-300, 2^424]``, where ``|p|^3`` (the on-axis Jacobian's
+    denominator) neither overflows nor underflows.
+
+    ``c`` is 1 for any ordinary point (bit-identical results) and exact otherwise, as
+    ``camera.base._pow2_normalised``; NaN for a point with an infinite or NaN coordinate (no direction to
+    trust), which the footprint's NaN guard then drops. Selects only: it vectorises.
+    """
+    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    c = 2.0 ** -600 if n2 > 2.0 ** 600 else (2.0 ** 600 if n2 < 2.0 ** -600 else 1.0)
+    c = c if finite else math.nan
+    return x * c, y * c, z * c, c
+
+
+@numba.njit(inline="always", cache=True)
 def _project(model: int, lens: np.ndarray, axis_eps: float, tiny: float, x: float, y: float, z: float
              ) -> tuple[float, float, float, float, float, float, float, float]:
     """``(u, v)`` of a camera-frame point and the Jacobian rows ``du/dp, dv/dp``, as ``CameraModel.project``.
 
-    ``u = fx s x + cx`` with the radial scale ``s = rho(theta) / r``; the camera centre maps to the
+    ``u = fx s x + cx`` with the radial scale ``s = rho(theta) / r``, computed on the point's
+    ``_direction`` so that no magnitude overflows; the camera centre (``|p|^2 <= tiny``) maps to the
     principal point, points within ``axis_eps`` of the axis use ``s = q(0) / |p|`` (front) or the rim
     (back), points past ``theta_max`` land on the rim in their own direction. Every case is computed
     (with safe denominators) and picked by selects, so a loop of projections vectorises.
     """
+    n2 = x * x + y * y + z * z        # inf past 1e154: read only by the centre test and _direction
+    centre = n2 <= tiny
+    x, y, z, c = _direction(x, y, z, n2)
     n2 = x * x + y * y + z * z
     r2 = x * x + y * y
     n2s = n2 if n2 > 0 else 1.0
@@ -116,10 +136,11 @@ def _project(model: int, lens: np.ndarray, axis_eps: float, tiny: float, x: floa
     sy = (k * y if front else 0.0) if axis else sr * y / rs
     sz = (k * z if front else 0.0) if axis else (0.0 if rim else -drho / n2s)
     fx, fy = lens[FX], lens[FY]
-    if n2 <= tiny:   # the camera centre: a select too once inlined into a loop
+    if centre:   # a select too once inlined into a loop
         return lens[CX], lens[CY], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    gx, gy = fx * c, fy * c     # d/dp of a function of c p
     return (fx * s * x + lens[CX], fy * s * y + lens[CY],
-            fx * (s + x * sx), fx * x * sy, fx * x * sz, fy * y * sx, fy * (s + y * sy), fy * y * sz)
+            gx * (s + x * sx), gx * x * sy, gx * x * sz, gy * y * sx, gy * (s + y * sy), gy * y * sz)
 
 
 @numba.njit(inline="always", cache=True)
