@@ -13,8 +13,9 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from hypothesis import HealthCheck, given, settings as hsettings, strategies as st
-
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 from prometheus_client.parser import text_string_to_metric_families
 
 from parksim.client import LocalSim, RemoteSim, decode_npz
@@ -164,7 +165,8 @@ def test_fuzz_get_never_500(client, pose, scale, cameras, bev, fmt, scene):
 
 
 _json = st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | _text,
-                     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(_text, inner, max_size=4), max_leaves=12)
+                     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(_text, inner, max_size=4),
+                     max_leaves=12)
 
 
 @hsettings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
