@@ -4,7 +4,8 @@
 gaussians.ply      the Gaussians (INRIA 3DGS layout)
 rig.json           the rig the scene was trained with, BEV spec included (Rig.save)
 map.json           the dataset's world slot map and obstacles (optional)
-bundle.json        metadata: format version, source dataset, iterations, per-camera response
+bundle.json        metadata: format version, source dataset, iterations, per-camera response,
+                   recorded_path (the dataset's ego path, ``recorded_path()``)
 config.yaml        the training config used (optional)
 visibility.npz     per-region visibility written by ``parksim compact`` (optional, named in bundle.json)
 metrics.jsonl/png  training metrics (optional)
@@ -19,17 +20,33 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .fileio import atomic_write, write_json
 from .gaussians import GaussianScene, PLYFormatError
 from .rig import BEVSpec, CalibrationError, Rig
 from .visibility import VisibilityGrid
 
-__all__ = ["Bundle", "BundleError", "load", "save", "BUNDLE_VERSION"]
+__all__ = ["Bundle", "BundleError", "load", "save", "recorded_path", "BUNDLE_VERSION", "RECORDED_PATH_POINTS"]
 
 BUNDLE_VERSION = 1
 """Bumped when the bundle layout changes incompatibly."""
 
 GAUSSIANS, RIG, MAP, META, VISIBILITY = "gaussians.ply", "rig.json", "map.json", "bundle.json", "visibility.npz"
+RECORDED_PATH_POINTS = 256
+"""Most poses ``recorded_path`` keeps: enough to draw and measure the path, small enough for a scene's JSON."""
+
+
+def recorded_path(poses: np.ndarray, points: int = RECORDED_PATH_POINTS) -> list[list[float]]:
+    """The dataset's ego path ``[[x, y, yaw], ...]`` from ``T_world_vehicle`` [N, 4, 4], at most ``points`` of them.
+
+    Evenly spaced frames, first and last kept: where the cameras drove, so viewers can start and stay there.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    keep = np.unique(np.linspace(0, len(poses) - 1, min(len(poses), points)).round().astype(np.int64))
+    p = poses[keep]
+    yaw = np.arctan2(p[:, 1, 0], p[:, 0, 0])
+    return np.stack([p[:, 0, 3], p[:, 1, 3], yaw], axis=1).tolist()
 
 
 class BundleError(ValueError):

@@ -195,10 +195,14 @@ class LocalSim:
         return poses * data + _NPZ_ARRAY_OVERHEAD * (views + 1) + meta
 
     def info(self) -> dict[str, Any]:
-        """What ``GET /scenes/{id}`` returns: rig, image sizes, BEV spec, bounds, slot map, metadata."""
+        """What ``GET /scenes/{id}`` returns: rig, image sizes, BEV spec, bounds, slot map, metadata, recorded
+        path (None for a bundle without one) and the ego footprint (``VehicleParams.extent``, as the env drives it)."""
+        from .vehicle import VehicleParams
+
         b = self.bundle
         return {"id": self.id, "gaussians": len(b.scene), "cameras": self.cameras, "rig": b.rig.to_dict(),
-                "bev": b.rig.bev.to_dict(), "bounds": self.bounds, "map": b.map, "meta": b.meta}
+                "bev": b.rig.bev.to_dict(), "bounds": self.bounds, "map": b.map, "meta": b.meta,
+                "recorded_path": b.meta.get("recorded_path"), "footprint": list(VehicleParams().extent)}
 
     def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
                scale: float = 1.0, depth: bool = False) -> Frame:

@@ -177,6 +177,10 @@ class SceneInfo(BaseModel):
     pose_margin_m: float
     map: dict[str, Any] | None = Field(description="world slot map and obstacles (parksim synth map.json), if any")
     meta: dict[str, Any]
+    recorded_path: list[list[float]] | None = Field(None, description="the ego path the dataset was recorded along, "
+                                                    "[[x, y, yaw], ...] (m, rad; at most 256 evenly spaced frames): "
+                                                    "renders are sharpest near it; None when the bundle has none")
+    footprint: list[float] = Field(description="ego body in the vehicle frame (m): [x_min, x_max, y_min, y_max]")
 
 
 class Health(BaseModel):
