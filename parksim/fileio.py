@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["atomic_write", "write_json", "atomic_directory"]
+__all__ = ["atomic_write", "write_json", "atomic_directory", "remove_stale_temps"]
+
+_TEMP_NAME = re.compile(r"\..+\.tmp\d+(\.[^.]*)?")
+"""``atomic_write``'s temp names: ``.{name}.tmp{pid}{suffix}``."""
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
@@ -21,6 +25,17 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def remove_stale_temps(folder: str | Path) -> list[Path]:
+    """Delete the temp files ``atomic_write`` left in ``folder`` when its process was killed; returns them.
+
+    Only for a folder no other process is writing into (a run's folder as the run starts).
+    """
+    stale = [p for p in Path(folder).glob(".*.tmp*") if _TEMP_NAME.fullmatch(p.name) and p.is_file()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 def write_json(path: str | Path, data: Any) -> None:

@@ -22,7 +22,8 @@ _REQUIRED = ("format", "iteration", "params", "optimizer", "response", "strategy
 
 
 class CheckpointError(ValueError):
-    """A checkpoint is missing, truncated, corrupt or from another format; the message names the file."""
+    """A run's saved state (its checkpoint, or the metrics log a resume continues) is missing, truncated, corrupt
+    or from another format; the message names the file."""
 
 
 def checkpoint_path(out_dir: str | Path) -> Path:

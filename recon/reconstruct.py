@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Callable
 
 from parksim.bundle import Bundle, recorded_path, save
-from parksim.fileio import atomic_write
+from parksim.fileio import atomic_write, remove_stale_temps
 from parksim.data import DatasetReader
 
 from .checkpoint import checkpoint_path, load_checkpoint
@@ -30,6 +30,13 @@ def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool)
     if config_path is not None and load_config(config_path) != stored:
         raise ValueError(f"--config {config_path} differs from the config the run in {out_dir} started with")
     return stored
+
+
+def _remove_stale_temps(out_dir: Path, log: Callable[[str], None]) -> None:
+    """Delete the temp files killed writes left in the run's folder (each kill mid-checkpoint leaves one that size)."""
+    stale = [p for folder in (out_dir, checkpoint_path(out_dir).parent) for p in remove_stale_temps(folder)]
+    if stale:
+        log(f"removed {len(stale)} temp file(s) left by a killed run: {', '.join(p.name for p in stale)}")
 
 
 def _start_from(trainer: Trainer, photometric_run: Path) -> None:
@@ -59,14 +66,18 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
     config = _resolve_config(out_dir, config_path, resume)
     if resume:
         trainer = Trainer.from_checkpoint(reader, config, out_dir, log)
+        trainer.decode_inputs()
         trainer.truncate_metrics()
+        _remove_stale_temps(out_dir, log)
     else:
         trainer = Trainer(reader, config, out_dir, log)
+        trainer.decode_inputs()
         if start_from is not None:
             _start_from(trainer, Path(start_from))
         else:
             trainer.initialise()
         out_dir.mkdir(parents=True, exist_ok=True)
+        _remove_stale_temps(out_dir, log)
         (out_dir / METRICS_FILE).unlink(missing_ok=True)
         atomic_write(out_dir / CONFIG_FILE, lambda p: p.write_text(dump_config(config)))
     trainer.train(stop_after=stop_after)

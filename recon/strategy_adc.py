@@ -15,43 +15,33 @@ from torch import Tensor
 
 from parksim.geometry import rotation_from_quaternion
 
-from .config import ADCConfig
+from .config import DensifyConfig
 from .params import NAMES, GaussianParams
+from .strategy_base import StepInfo, Strategy
 
-__all__ = ["ADCStrategy", "ViewInfo"]
+__all__ = ["ADCStrategy"]
 
 _SPLIT_SHRINK = 1.6  # 3DGS: split children get scale / (0.8 * 2)
 _RESET_OPACITY = 0.01
 
 
-class ViewInfo:
-    """What ADC needs of a rendered view: the camera centre in the world, its focal length and image width."""
-
-    def __init__(self, centre: Tensor, focal: float, width: int) -> None:
-        self.centre, self.focal, self.width = centre, focal, width
-
-
-class ADCStrategy:
+class ADCStrategy(Strategy):
     """Clone small / split large Gaussians with high view-space gradients; prune transparent and huge ones."""
 
-    def __init__(self, cfg: ADCConfig, extent: float) -> None:
-        self.cfg, self.extent = cfg, extent
+    def __init__(self, densify: DensifyConfig, extent: float) -> None:
+        self.cfg, self.extent = densify.adc, extent
         self.grad_sum = torch.zeros(0)
         self.count = torch.zeros(0)
 
-    def regularization(self, params: GaussianParams) -> Tensor:
-        """ADC uses no regulariser."""
-        return torch.zeros(())
-
     @torch.no_grad()
-    def after_backward(self, params: GaussianParams, views: list[ViewInfo]) -> None:
+    def step_post_backward(self, params: GaussianParams, info: StepInfo) -> None:
         """Accumulate the estimated view-space gradient norm of every Gaussian the first view touched."""
         if len(self.grad_sum) != len(params):
             self.grad_sum, self.count = torch.zeros(len(params)), torch.zeros(len(params))
         grad = params["means"].grad
-        if grad is None or not views:
+        if grad is None or not info.views:
             return
-        view = views[0]
+        view = info.views[0]
         dist = (params["means"].detach() - view.centre.to(torch.float32)).norm(dim=1)
         norm = grad.norm(dim=1) * dist / view.focal * view.width / 2
         seen = grad.abs().sum(dim=1) > 0
@@ -59,12 +49,12 @@ class ADCStrategy:
         self.count += seen.float()
 
     @torch.no_grad()
-    def after_step(self, params: GaussianParams, step: int, means_lr: float, generator: torch.Generator) -> dict[str, int]:
+    def step_post_update(self, params: GaussianParams, info: StepInfo) -> dict[str, int]:
         """Densify and prune on schedule; reset opacities every ``reset_every`` steps."""
-        c = self.cfg
+        c, step = self.cfg, info.step
         stats: dict[str, int] = {}
         if c.refine_start < step < c.refine_stop and step % c.refine_every == 0:
-            stats = self._refine(params, step, generator)
+            stats = self._refine(params, step, info.generator)
             self.grad_sum, self.count = torch.zeros(len(params)), torch.zeros(len(params))
         if step < c.refine_stop and step % c.reset_every == 0:
             limit = math.log(_RESET_OPACITY / (1 - _RESET_OPACITY))

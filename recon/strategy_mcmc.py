@@ -10,15 +10,15 @@ Loss regularisers on mean opacity and mean scale drive unneeded Gaussians to die
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 from torch import Tensor
 
 from parksim.render.projection import covariance_sqrt
 
-from .config import MCMCConfig
+from .config import DensifyConfig
 from .params import NAMES, GaussianParams
+from .strategy_base import StepInfo, Strategy
 
 __all__ = ["MCMCStrategy", "relocation_correction"]
 
@@ -59,29 +59,26 @@ def _op_sigmoid(x: Tensor, k: float = 100.0, x0: float = 0.995) -> Tensor:
     return torch.sigmoid(k * (x - x0))
 
 
-class MCMCStrategy:
+class MCMCStrategy(Strategy):
     """Relocate / add / perturb as in 3DGS-MCMC; see the module docstring."""
 
-    def __init__(self, cfg: MCMCConfig) -> None:
-        self.cfg = cfg
+    def __init__(self, densify: DensifyConfig, extent: float) -> None:
+        self.cfg = densify.mcmc
 
-    def regularization(self, params: GaussianParams) -> Tensor:
+    def step_pre_backward(self, params: GaussianParams, info: StepInfo) -> Tensor:
         """Opacity and scale L1 regularisers (mean over Gaussians)."""
         return (self.cfg.opacity_reg * torch.sigmoid(params["opacity_logits"]).mean()
                 + self.cfg.scale_reg * torch.exp(params["log_scales"]).mean())
 
-    def after_backward(self, params: GaussianParams, views: list[Any]) -> None:
-        """MCMC needs no gradient statistics."""
-
     @torch.no_grad()
-    def after_step(self, params: GaussianParams, step: int, means_lr: float, generator: torch.Generator) -> dict[str, int]:
+    def step_post_update(self, params: GaussianParams, info: StepInfo) -> dict[str, int]:
         """Refine on schedule, then inject position noise; returns counts of relocated and added Gaussians."""
-        c = self.cfg
+        c, generator = self.cfg, info.generator
         stats = {}
-        if c.refine_start < step < c.refine_stop and step % c.refine_every == 0:
+        if c.refine_start < info.step < c.refine_stop and info.step % c.refine_every == 0:
             stats["relocated"] = self._relocate(params, generator)
             stats["added"] = self._add(params, generator)
-        self._inject_noise(params, means_lr * c.noise_lr, generator)
+        self._inject_noise(params, info.means_lr * c.noise_lr, generator)
         return stats
 
     def _sample(self, params: GaussianParams, candidates: Tensor, n: int,
@@ -131,10 +128,3 @@ class MCMCStrategy:
         L = covariance_sqrt(params["quats"].detach()[moving], params["log_scales"].detach()[moving])
         noise = (L @ (L.transpose(1, 2) @ (eps[moving] * gate[moving, None] * scale)[:, :, None])).squeeze(2)
         params["means"].data.index_add_(0, moving, noise)
-
-    def state_dict(self) -> dict[str, Any]:
-        """No state beyond the parameters."""
-        return {}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Nothing to restore."""

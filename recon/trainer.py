@@ -11,7 +11,6 @@ L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rat
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,22 +24,21 @@ from parksim.data import DatasetReader
 from parksim.render import render
 
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
 from .evaluate import evaluate_views
 from .init import initial_scene
 from .losses import photometric_loss
 from .masks import scene_mask
 from .metrics import psnr
+from .metrics_log import METRICS_FILE, append_record, cut_back
 from .params import GaussianParams
 from .response import CameraResponse
 from .schedule import exp_decay, sh_degree_at
 from .slot_aware import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, spec_of
-from .strategy_adc import ADCStrategy, ViewInfo
-from .strategy_mcmc import MCMCStrategy
+from .strategy import StepInfo, ViewInfo, make_strategy
 
 __all__ = ["Trainer", "scene_extent", "METRICS_FILE"]
-
-METRICS_FILE = "metrics.jsonl"
 
 
 def scene_extent(reader: DatasetReader) -> float:
@@ -76,8 +74,7 @@ class Trainer:
                       for c in self.rig.names}
         self.extent = scene_extent(reader)
         self.response = CameraResponse(self.rig, config.lr.response)
-        d = config.densify
-        self.strategy = MCMCStrategy(d.mcmc) if d.strategy == "mcmc" else ADCStrategy(d.adc, self.extent)
+        self.strategy = make_strategy(config.densify, self.extent)
         self.params: GaussianParams | None = None
         self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
         self._images: dict[tuple[int, str], Tensor] = {}
@@ -153,6 +150,13 @@ class Trainer:
                 "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(),
                 "config": self.cfg.model_dump(mode="json")}
 
+    def decode_inputs(self) -> None:
+        """Decode every train and test image now, so a corrupt file fails before the run writes anything rather
+        than at the iteration that first samples it; the train images are kept (evaluation reads its own)."""
+        tests = [(f, c) for f in self.reader.split["test"] for c in self.rig.names]
+        decoded = self.reader.images(self.views + tests, progress=self.cfg.run.progress)
+        self._images = {view: decoded[view] for view in self.views}
+
     # --- one iteration -----------------------------------------------------------------------
     def _image(self, frame: int, camera: str) -> Tensor:
         key = (frame, camera)
@@ -214,14 +218,15 @@ class Trainer:
         else:
             batch, terms = self._slot_batch(sh_degree)
             rgb, objective, slot = terms.rgb, terms.total, terms.record()
-        loss = objective + self.strategy.regularization(self.params)
+        info = StepInfo(self.step + 1, batch.infos, means_lr, self.generator)
+        loss = objective + self.strategy.step_pre_backward(self.params, info)
         loss.backward()
-        self.strategy.after_backward(self.params, batch.infos)
+        self.strategy.step_post_backward(self.params, info)
         self.params.optimizer.step()
         self.params.optimizer.zero_grad(set_to_none=True)
         self.response.step()
         self.step += 1
-        refine = self.strategy.after_step(self.params, self.step, means_lr, self.generator)
+        refine = self.strategy.step_post_update(self.params, info)
         with torch.no_grad():
             train_psnr = psnr(batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0)
         return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()), "psnr": train_psnr,
@@ -236,16 +241,9 @@ class Trainer:
                                 self.cfg.run.backend, slots=False)
         return {"test_psnr": report.mean("psnr"), "test_ssim": report.mean("ssim")}
 
-    def _write_metrics(self, record: dict[str, Any]) -> None:
-        with open(self.out / METRICS_FILE, "a") as f:
-            f.write(json.dumps(record) + "\n")
-
     def truncate_metrics(self) -> None:
         """Drop metric lines past the current step (written by a run killed after its last checkpoint)."""
-        path = self.out / METRICS_FILE
-        if path.is_file():
-            lines = [ln for ln in path.read_text().splitlines() if ln.strip() and json.loads(ln)["iteration"] <= self.step]
-            path.write_text("".join(ln + "\n" for ln in lines))
+        cut_back(self.out / METRICS_FILE, self.step)
 
     def train(self, stop_after: int | None = None) -> None:
         """Run to ``total_iterations`` (or stop once ``stop_after`` iterations are done)."""
@@ -253,7 +251,7 @@ class Trainer:
         end = total if stop_after is None else min(total, stop_after)
         bar = tqdm(total=total, initial=self.step, desc="reconstruct", unit="it", disable=not run.progress,
                    dynamic_ncols=True)
-        with bar:
+        with compile_notice(), bar:
             while self.step < end:
                 start, start_cpu = time.perf_counter(), time.process_time()
                 record = self.iteration()
@@ -261,9 +259,9 @@ class Trainer:
                 self.cpu += time.process_time() - start_cpu
                 clock = {"elapsed_s": self.elapsed, "cpu_s": self.cpu}
                 if self.step % run.log_every == 0 or self.step == total:
-                    self._write_metrics({**record, **clock})
+                    append_record(self.out / METRICS_FILE, {**record, **clock})
                 if run.eval_every and (self.step % run.eval_every == 0 or self.step == total) and self.test_views:
-                    self._write_metrics({"iteration": self.step, **clock, **self.evaluate()})
+                    append_record(self.out / METRICS_FILE, {"iteration": self.step, **clock, **self.evaluate()})
                 if self.step % run.checkpoint_every == 0 or self.step == total:
                     save_checkpoint(checkpoint_path(self.out), self.state())
                 bar.update(1)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -213,3 +216,146 @@ def test_adc_strategy_densifies_and_keeps_optimizer_rows_aligned(tiny_data: Path
     for name, tensor in trainer.params.tensors.items():
         state = trainer.params.optimizer.state[tensor]
         assert state["exp_avg"].shape == tensor.shape, name
+
+
+# --- a killed run leaves nothing that stops the next one --------------------------------------------
+def test_resume_drops_a_torn_metrics_tail_and_says_so(full_run: Path, tiny_data: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "torn"
+    reconstruct(tiny_data, out, TINY, stop_after=10, log=lambda s: None)
+    with open(out / "metrics.jsonl", "a") as f:  # the disk filled up mid-line
+        f.write('{"iteration": 12, "loss": 0.3')
+    capsys.readouterr()
+    reconstruct(tiny_data, out, None, resume=True, log=lambda s: None)
+    err = capsys.readouterr().err
+    assert err.count("torn last line") == 1 and "metrics.jsonl" in err
+    assert [r["iteration"] for r in read_metrics(out / "metrics.jsonl")] == \
+        [r["iteration"] for r in read_metrics(full_run / "metrics.jsonl")]
+
+
+def test_a_torn_line_before_the_tail_names_the_line_and_changes_nothing(tmp_path: Path) -> None:
+    from recon.metrics_log import cut_back
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"iteration": 2}\n{"iteration": 4, "lo\n{"iteration": 6}\n')
+    before = path.read_bytes()
+    with pytest.raises(CheckpointError, match=r"metrics\.jsonl line 2: not a JSON record"):
+        cut_back(path, 6)
+    assert path.read_bytes() == before
+
+
+def test_cutting_back_the_metrics_replaces_the_file(tmp_path: Path) -> None:
+    """A rewrite in place that is killed would lose the kept records too; a new file is renamed over the old one."""
+    from recon.metrics_log import cut_back
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"iteration": 2}\n{"iteration": 4}\n{"iteration": 6}\n')
+    inode = path.stat().st_ino
+    cut_back(path, 4)
+    assert path.read_text() == '{"iteration": 2}\n{"iteration": 4}\n'
+    assert path.stat().st_ino != inode and [p.name for p in tmp_path.iterdir()] == ["metrics.jsonl"]
+
+
+def test_stale_temp_files_are_removed_at_start_and_resume(tiny_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "debris"
+    kept = out / ".notes.txt"
+
+    def litter() -> list[Path]:
+        stale = [out / "checkpoints" / ".last.pt.tmp4242.pt", out / ".metrics.png.tmp4242.png",
+                 out / ".config.yaml.tmp77.yaml"]
+        for p in stale:
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_bytes(b"\0" * 1000)
+        return stale
+
+    stale = litter()
+    kept.write_text("not a temp file")
+    reconstruct(tiny_data, out, TINY, stop_after=10, log=lambda s: None)   # to the first checkpoint
+    assert not any(p.exists() for p in stale)
+    stale = litter()
+    reconstruct(tiny_data, out, None, resume=True, stop_after=11, log=lambda s: None)
+    assert not any(p.exists() for p in stale) and kept.is_file()
+
+
+def test_a_corrupt_training_image_fails_before_training_naming_it(tiny_data: Path, tmp_path: Path) -> None:
+    from parksim.data import DatasetError
+
+    data = tmp_path / "data"
+    shutil.copytree(tiny_data, data)
+    reader = DatasetReader(data)
+    bad = reader.layout.image(reader.rig.names[-1], reader.split["train"][-1])
+    bad.write_bytes(os.urandom(bad.stat().st_size))
+    out = tmp_path / "never"
+    with pytest.raises(DatasetError, match=re.escape(str(bad))):
+        reconstruct(data, out, TINY, log=lambda s: None)
+    assert not out.exists()
+
+
+# --- the first run's kernel compile is announced, a cached run is quiet ----------------------------
+def test_compile_notice_is_said_once_per_block_and_only_for_a_real_compile() -> None:
+    import numba
+
+    from recon.compile_notice import NOTICE, compile_notice
+
+    said: list[str] = []
+    add, scale = numba.njit(lambda x: x + 1), numba.njit(lambda x: 2 * x)
+    with compile_notice(said.append):
+        add(1), add(2.5), scale(3)          # three compiles, one notice
+    assert said == [NOTICE]
+    with compile_notice(said.append):
+        add(4)                              # compiled already: nothing to say
+    scale(1.5)                              # outside a block: nobody listens
+    assert said == [NOTICE]
+
+
+def test_compile_notice_is_quiet_when_numba_s_disk_cache_has_the_kernel(tmp_path: Path) -> None:
+    (tmp_path / "kern.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+    script = "import kern\nfrom recon.compile_notice import compile_notice\nwith compile_notice():\n    kern.twice(3)\n"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    runs = [subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True,
+                           timeout=120, check=True) for _ in range(2)]
+    assert "compiling render kernels" in runs[0].stderr          # cold cache: compiled
+    assert "compiling render kernels" not in runs[1].stderr      # loaded from the cache folder
+    assert list((tmp_path / "cache").rglob("kern.twice-*.nbi"))
+
+
+# --- densification strategies share one contract ---------------------------------------------------
+def test_strategy_registry_is_the_config_s_choice_and_an_unknown_name_is_a_config_error() -> None:
+    from typing import get_args
+
+    from recon.config import DensifyConfig, parse_config
+    from recon.strategy import STRATEGIES, make_strategy
+
+    assert set(get_args(DensifyConfig.model_fields["strategy"].annotation)) == set(STRATEGIES)
+    with pytest.raises(ConfigError, match=r"densify\.strategy: unknown strategy 'gmm'; choose one of mcmc, adc"):
+        make_strategy(DensifyConfig().model_copy(update={"strategy": "gmm"}), 1.0)
+    with pytest.raises(ConfigError, match=r"densify\.strategy"):
+        parse_config({"densify": {"strategy": "gmm"}}, "test")
+
+
+@pytest.mark.parametrize("name", ["mcmc", "adc"])
+def test_every_registered_strategy_keeps_the_contract(name: str, tiny_data: Path, tmp_path: Path) -> None:
+    import inspect
+
+    from recon.strategy import STRATEGIES, Strategy
+    from recon.trainer import Trainer
+
+    cls = STRATEGIES[name]
+    assert issubclass(cls, Strategy) and not inspect.isabstract(cls)
+    for hook in ("__init__", "step_pre_backward", "step_post_backward", "step_post_update", "state_dict",
+                 "load_state_dict"):
+        assert inspect.signature(getattr(cls, hook)) == inspect.signature(getattr(Strategy, hook)), hook
+    base = load_config(TINY).model_dump()
+    base["densify"]["strategy"] = name
+    base["densify"][name].update(refine_start=0, refine_every=2)
+    trainer = Trainer(DatasetReader(tiny_data), TrainConfig.model_validate(base), tmp_path, log=lambda s: None)
+    trainer.initialise()
+    assert type(trainer.strategy) is cls
+    refined = [trainer.iteration() for _ in range(2)][-1]     # step 2 refines
+    assert set(refined) >= {"mcmc": {"relocated", "added"}, "adc": {"cloned", "split", "pruned"}}[name]
+    state = trainer.strategy.state_dict()
+    again = cls(trainer.cfg.densify, trainer.extent)
+    again.load_state_dict(state)
+    assert again.state_dict().keys() == state.keys()
+    assert all(torch.equal(again.state_dict()[k], v) for k, v in state.items())

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import sys
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -11,11 +15,15 @@ import cv2
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from ..rig import CalibrationError, Rig
 from .layout import DEPTH_SCALE, DatasetError, DatasetLayout
 
 __all__ = ["DatasetReader"]
+
+_DECODE_WORKERS = 8
+"""Most threads decoding images at once (PNG decoding scales to a few cores; more only adds memory)."""
 
 
 def _read_json(path: Path) -> Any:
@@ -156,6 +164,26 @@ class DatasetReader:
         if img.shape[:2] != (m.height, m.width):
             raise DatasetError(path, f"image is {img.shape[1]}x{img.shape[0]} but the rig says {m.width}x{m.height}")
         return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
+
+    def images(self, views: Sequence[tuple[int, str]], progress: bool = True) -> dict[tuple[int, str], Tensor]:
+        """``image(camera, frame)`` of every ``(frame, camera)`` view, decoded on a thread pool (cv2 releases the GIL).
+
+        Reading all images up front finds a corrupt one before a long run rather than when it is first sampled;
+        the first bad file in ``views`` order raises its DatasetError. ``progress`` shows a bar on stderr.
+        """
+        _ = self.rig, self.frames   # built once here, not raced for by the workers
+        pool = ThreadPoolExecutor(min(_DECODE_WORKERS, os.cpu_count() or 1))
+        try:
+            futures = [pool.submit(self.image, camera, frame) for frame, camera in views]
+            decoded = {}
+            with tqdm(total=len(futures), desc="decode images", unit="img", disable=not progress, file=sys.stderr,
+                      dynamic_ncols=True) as bar:
+                for view, future in zip(views, futures):
+                    decoded[view] = future.result()
+                    bar.update()
+            return decoded
+        finally:
+            pool.shutdown(cancel_futures=True)
 
     def ipm(self, frame: int) -> Tensor:
         """Ground-truth BEV image as float32 RGB in [0, 1], HxWx3."""
