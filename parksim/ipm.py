@@ -17,9 +17,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ._ipm_kernels import blend_taps
 from .camera import pixel_grid
 from .geometry import invert_transform, transform_points
-from ._ipm_kernels import blend_taps
 from .rig import BEVSpec, Rig
 
 __all__ = ["IPM"]
@@ -58,9 +58,26 @@ def _from_nchw(x: Tensor, batched: bool, squeeze_c: bool) -> Tensor:
 class IPM:
     """Fisheye images -> BEV (``__call__``) and BEV maps -> fisheye images (``to_cameras``).
 
-    ``edge_px`` is the width of the smooth fade of each camera's weight at its image border
-    and lens edge; ``falloff`` the power of the ground distance in the weight
-    (``w ~ fade / d^falloff``), so the nearest, sharpest camera dominates away from seams.
+    Each BEV pixel is a ground point (z = 0 in the vehicle frame) blended from the cameras that see
+    it, weighted ``w ~ fade / d^falloff`` so the nearest, sharpest camera dominates away from seams.
+
+    Args:
+        rig: the cameras (lens models and ``T_vehicle_camera``).
+        spec: the BEV grid (default: the rig's).
+        cameras: names of the cameras to blend (default: all of the rig's).
+        edge_px: width in pixels of the smooth fade of each camera's weight at its image border and lens edge.
+        falloff: power of the ground distance in the weight.
+        dtype: float dtype of the precomputed sampling grids and weights.
+
+    Example:
+        >>> import torch
+        >>> from parksim.camera import Pinhole
+        >>> from parksim.rig import BEVSpec, Rig, RigCamera
+        >>> T = torch.tensor([[0.0, -1, 0, 0], [-1, 0, 0, 0], [0, 0, -1, 1], [0, 0, 0, 1]])  # 1 m up, looking down
+        >>> rig = Rig({"down": RigCamera("down", Pinhole(32, 32, 16.0, 16.0, 15.5, 15.5), T)}, BEVSpec(4, 4, 0.25))
+        >>> bev = IPM(rig)({"down": torch.ones(32, 32, 3, dtype=torch.float64)})
+        >>> bev.shape, bool(torch.allclose(bev, torch.ones(4, 4, 3, dtype=torch.float64)))
+        (torch.Size([4, 4, 3]), True)
     """
 
     def __init__(self, rig: Rig, spec: BEVSpec | None = None, cameras: Sequence[str] | None = None,
@@ -124,10 +141,18 @@ class IPM:
                                  f"{model.width}x{model.height}")
 
     def __call__(self, images: Mapping[str, Tensor]) -> Tensor:
-        """Blend the cameras' images (HxWxC, HxW or BxHxWxC) into the BEV (same layout).
+        """Blend the cameras' images into the BEV.
 
         Differentiable; when no image needs a gradient, single float32 HxWxC images take a numba gather
         (``_ipm_kernels.blend_taps``) with the same taps and weights instead of one ``grid_sample`` per camera.
+
+        Args:
+            images: per camera name, its image ``(H, W, C)``, ``(H, W)`` or ``(B, H, W, C)`` at the rig's size;
+                one layout for all.
+
+        Returns:
+            The BEV ``(spec.height, spec.width[, C])`` or ``(B, spec.height, spec.width, C)``, the images'
+            layout and dtype; 0 where no camera sees the ground (``mask`` False).
         """
         self._check(images)
         if self._gather_applies(images):
@@ -202,8 +227,16 @@ class IPM:
         return self._back[name]
 
     def to_cameras(self, bev_map: Tensor, cameras: Sequence[str] | None = None) -> dict[str, Tensor]:
-        """Back-project a BEV map (HxW, HxWxC or BxHxWxC) into each camera: each pixel's ray
-        meets the ground and looks the map up there; pixels whose ray misses the BEV get 0."""
+        """Back-project a BEV map into each camera: each pixel's ray meets the ground and looks the map up there.
+
+        Args:
+            bev_map: ``(spec.height, spec.width)``, ``(spec.height, spec.width, C)`` or ``(B, ..., C)``.
+            cameras: names of the cameras to fill (default: the IPM's).
+
+        Returns:
+            Per camera name, ``(H, W[, C])`` (or ``(B, H, W, C)``) at the camera's size, the map's layout and
+            dtype; 0 where the pixel's ray misses the BEV or the lens.
+        """
         expected = (self.spec.height, self.spec.width)
         hw = tuple(bev_map.shape[-3:-1]) if bev_map.ndim >= 3 else tuple(bev_map.shape)
         if hw != expected:

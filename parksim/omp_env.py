@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+__all__ = ["prefer_sleeping_omp_threads"]
+
 
 def prefer_sleeping_omp_threads() -> None:
     """Waiting OpenMP threads sleep instead of spinning: spinning steals the core numba's kernels need on a small

@@ -5,3 +5,5 @@ wall-clock), ``scaling`` (latency vs Gaussians and pixels, fitted exponents), ``
 stress suite at many examples), ``soak`` (long training and server runs); ``common`` holds the timing,
 metadata and writing helpers they share. Reached only from the CLI, so it may import ``recon``/``server``.
 """
+
+__all__: list[str] = []

@@ -22,6 +22,10 @@ from typing import Any
 
 import numpy as np
 
+__all__ = ["ROOT", "RESULTS_MD", "Timing", "Written", "set_threads", "time_medians", "fit_exponent", "load_average",
+           "metadata", "meta_lines", "md_table", "progress", "write_result", "refresh_results_md", "pyplot",
+           "save_figure"]
+
 ROOT = Path(__file__).resolve().parents[2]
 """The checkout (benchmarks/, tests/, configs/ live here)."""
 

@@ -14,6 +14,8 @@ from pathlib import Path
 
 from .common import ROOT
 
+__all__ = ["Server", "serve_bundle", "rss_mib", "free_port"]
+
 _SERVER = ("import sys, uvicorn; from server import create_app; uvicorn.run(create_app(sys.argv[1]), "
            "host='127.0.0.1', port=int(sys.argv[2]), log_level='warning')")
 

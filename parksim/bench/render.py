@@ -28,6 +28,8 @@ from ..rig import Rig
 from .common import md_table, metadata, progress, pyplot, save_figure, set_threads, time_medians, write_result
 from .scenes import cap_sh_degree, garage_scene
 
+__all__ = ["run", "Knobs", "Input", "GroundTruth", "knob_grid", "PSNR_CAP_DB"]
+
 PSNR_CAP_DB = 80.0
 """Where the plot puts renders identical to the reference (PSNR = inf)."""
 

@@ -21,6 +21,8 @@ from .common import Timing, fit_exponent, md_table, metadata, progress, pyplot, 
     time_medians, write_result
 from .scenes import garage_scene
 
+__all__ = ["run"]
+
 
 def _sweep_point(scene: Any, rig: Rig, pose: torch.Tensor, camera: str, scale: float, args: argparse.Namespace
                  ) -> Timing:

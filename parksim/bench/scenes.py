@@ -12,6 +12,8 @@ import torch
 
 from ..gaussians import SH_C0, GaussianScene
 
+__all__ = ["garage_scene", "cap_sh_degree", "read_points", "mean_spacing"]
+
 
 def read_points(dataset: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Positions, unit normals and RGB in [0, 1] of the dataset's ``points3d.ply``."""

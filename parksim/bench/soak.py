@@ -21,6 +21,8 @@ from .common import md_table, metadata, progress, pyplot, save_figure, write_res
 from .procs import rss_mib, serve_bundle
 from .train import ensure_dataset
 
+__all__ = ["soak_train", "soak_server"]
+
 
 def _soak_config(config: str, steps: int) -> Any:
     """``config`` stretched to ``steps`` photometric iterations with densification running to the end."""

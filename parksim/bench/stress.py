@@ -15,6 +15,8 @@ from typing import Any
 
 from .common import ROOT, md_table, metadata, progress, pyplot, save_figure, write_result
 
+__all__ = ["run", "run_suite", "STRESS_TESTS", "EXAMPLES_ENV"]
+
 STRESS_TESTS = ROOT / "tests" / "test_stress.py"
 EXAMPLES_ENV = "PARKSIM_STRESS_EXAMPLES"
 

@@ -16,6 +16,8 @@ from typing import Any
 
 from .common import md_table, metadata, progress, pyplot, save_figure, write_result
 
+__all__ = ["run", "train_one", "ensure_dataset", "TARGET_DB"]
+
 TARGET_DB = 28.0
 
 

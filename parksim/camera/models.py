@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .base import CameraModel
 
-__all__ = ["OpenCVFisheye", "RadialPolyFisheye", "Pinhole"]
+__all__ = ["OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "camera_from_dict"]
 
 
 def _scale_centre(c: float, s: float) -> float:
@@ -33,7 +33,7 @@ class OpenCVFisheye(CameraModel):
         super().__init__(width, height, fx, fy, cx, cy, k, max_fov_deg)
 
     @classmethod
-    def from_K_D(cls, K: Any, D: Any, size: tuple[int, int], max_fov_deg: float = 190.0) -> "OpenCVFisheye":
+    def from_K_D(cls, K: Any, D: Any, size: tuple[int, int], max_fov_deg: float = 190.0) -> OpenCVFisheye:
         """From an OpenCV camera matrix ``K`` (3x3), ``D`` (4 values) and ``size = (width, height)``."""
         K = torch.as_tensor(K, dtype=torch.float64).reshape(3, 3)
         return cls(size[0], size[1], K[0, 0], K[1, 1], K[0, 2], K[1, 2],
@@ -59,7 +59,7 @@ class OpenCVFisheye(CameraModel):
                 "fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
                 "k": [float(v) for v in self.k], "max_fov_deg": self.max_fov_deg}
 
-    def scaled(self, s: float) -> "OpenCVFisheye":
+    def scaled(self, s: float) -> OpenCVFisheye:
         return OpenCVFisheye(round(self.width * s), round(self.height * s), float(self.fx) * s,
                              float(self.fy) * s, _scale_centre(float(self.cx), s),
                              _scale_centre(float(self.cy), s), self.k.detach().clone(), self.max_fov_deg)
@@ -93,7 +93,7 @@ class RadialPolyFisheye(CameraModel):
                 "k": [float(v) for v in self.k], "cx_offset": self.cx_offset, "cy_offset": self.cy_offset,
                 "aspect_ratio": self.aspect_ratio, "max_fov_deg": self.max_fov_deg}
 
-    def scaled(self, s: float) -> "RadialPolyFisheye":
+    def scaled(self, s: float) -> RadialPolyFisheye:
         w, h = round(self.width * s), round(self.height * s)
         cx, cy = _scale_centre(float(self.cx), s), _scale_centre(float(self.cy), s)
         return RadialPolyFisheye(w, h, self.k.detach() * s, cx - (w / 2 - 0.5), cy - (h / 2 - 0.5),
@@ -126,7 +126,7 @@ class Pinhole(CameraModel):
                 "fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx), "cy": float(self.cy),
                 "max_fov_deg": self.max_fov_deg}
 
-    def scaled(self, s: float) -> "Pinhole":
+    def scaled(self, s: float) -> Pinhole:
         return Pinhole(round(self.width * s), round(self.height * s), float(self.fx) * s, float(self.fy) * s,
                        _scale_centre(float(self.cx), s), _scale_centre(float(self.cy), s), self.max_fov_deg)
 

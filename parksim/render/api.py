@@ -20,15 +20,15 @@ import torch
 from torch import Tensor
 
 from ..camera import pixel_grid
-from ..geometry import as_pose, invert_transform
 from ..gaussians import GaussianScene
+from ..geometry import as_pose, invert_transform
 from ..ipm import IPM
 from ..rig import Rig, RigCamera
 from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
-from .rasterize.cpu import Image, composite_many
 from .rasterize._kernels import finish_image
+from .rasterize.cpu import Image, composite_many
 from .scratch import thread_scratch
 from .sh import eval_sh
 
@@ -169,12 +169,34 @@ def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor,
 def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
            bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
            method: str = "ut", ut_params: UTParams | None = None, cull: bool = True) -> RenderResult:
-    """Render ``cameras`` (default: all of the rig) at ``pose`` (4x4 ``T_world_vehicle`` or ``(x, y, yaw)``).
+    """Render ``cameras`` of the rig with the vehicle at ``pose``, and optionally the BEV.
 
     Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend; when no
     gradient is needed (``torch.no_grad()`` or plain tensors) all cameras are projected in one kernel pass.
-    ``bev=True`` adds the IPM of the rendered views (the rig's BEV spec). ``cull=False`` projects every
-    Gaussian into every camera (only to measure what culling saves).
+
+    Args:
+        scene: N Gaussians in the world frame (means ``(N, 3)``, quats ``(N, 4)``, log-scales ``(N, 3)``,
+            opacity logits ``(N,)``, SH ``(N, K, 3)``), one float dtype.
+        rig: the cameras (lens models and ``T_vehicle_camera``) and the BEV spec.
+        pose: ``T_world_vehicle`` ``(4, 4)``, ``(x, y, yaw)`` on the ground or ``(x, y, z, roll, pitch, yaw)``
+            (metres, radians).
+        cameras: names of the cameras to render (default: all of the rig's).
+        bev: also blend the rendered views into the rig's BEV (IPM).
+        scale: image size relative to the rig's cameras (0.5 halves width and height).
+        backend: rasterizer, one of ``rasterize.BACKENDS`` ("auto": gsplat on CUDA if installed, else numba).
+        bg: background colour ``(3,)`` behind the Gaussians.
+        method: 2D footprints by the unscented transform ("ut") or first-order EWA ("ewa").
+        ut_params: unscented-transform parameters (default ``UTParams()``).
+        cull: False projects every Gaussian into every camera (only to measure what culling saves).
+
+    Returns:
+        ``RenderResult``: per camera name an image ``(H, W, 3)`` in [0, 1], alpha ``(H, W)`` and depth
+        ``(H, W)`` (``H, W`` the camera's size times ``scale``), and the BEV ``(rig.bev.height, rig.bev.width,
+        3)`` or None; the scene's dtype.
+
+    Raises:
+        KeyError: a camera name the rig does not have.
+        ValueError: ``scale`` not positive, or a bad ``backend`` / ``method``.
     """
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]

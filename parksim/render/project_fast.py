@@ -19,8 +19,8 @@ from torch import Tensor
 
 from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
 from . import _project_kernels as pk
-from .scratch import Allocator, fresh
 from ._views_kernels import project_views
+from .scratch import Allocator, fresh
 
 __all__ = ["FusedUTConfig", "fused_supported", "project_ut_fused", "project_views_fused", "ViewsProjected",
            "keep_torch_threads"]

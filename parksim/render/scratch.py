@@ -13,6 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+__all__ = ["Allocator", "fresh", "thread_scratch"]
+
 Allocator = Callable[[str, tuple[int, ...], "np.dtype | type"], np.ndarray]
 """``alloc(name, shape, dtype)``: an uninitialised C-contiguous array for the temporary called ``name``."""
 

@@ -52,13 +52,33 @@ def rasterize(
     backend: str = "auto",
     bg: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Composite M projected Gaussians into an image; returns (rgb [H,W,3], alpha [H,W], depth [H,W]).
+    """Composite M projected Gaussians front to back into an image, differentiably in all five inputs.
 
-    Differentiable w.r.t. means2d [M,2], conics [M,3], colors [M,3], opacities [M] and depths [M].
-    alpha = 1 - final transmittance; depth = sum_i d_i alpha_i T_i is the unnormalised expected depth
-    (divide by alpha for the mean depth of covered pixels). bg [3], if given, fills the remaining
-    transmittance of rgb and is treated as a constant. Gaussians with a non positive definite conic or
-    opacity below 1/255 are culled.
+    Gaussians with a non positive definite conic or opacity below 1/255 are culled.
+
+    Args:
+        means2d: ``(M, 2)`` centres in pixels (u, v), pixel centres at integers.
+        conics: ``(M, 3)`` inverse 2D covariances ``(a, b, c)`` of ``[[a, b], [b, c]]``, in 1/px^2.
+        colors: ``(M, 3)`` RGB.
+        opacities: ``(M,)`` in [0, 1].
+        depths: ``(M,)`` sort keys (distance from the camera), also what ``depth`` averages.
+        width: image width in pixels.
+        height: image height in pixels.
+        backend: one of ``BACKENDS`` ("auto": gsplat for CUDA tensors if installed, else numba).
+        bg: ``(3,)`` background filling the remaining transmittance of rgb, a constant; None for black.
+
+    Returns:
+        ``(rgb, alpha, depth)``: ``(H, W, 3)``, ``(H, W)`` with alpha = 1 - final transmittance, and ``(H, W)``
+        the unnormalised expected depth ``sum_i d_i alpha_i T_i`` (divide by alpha for the mean depth of
+        covered pixels); the inputs' dtype.
+
+    Example:
+        >>> import torch
+        >>> rgb, alpha, depth = rasterize(torch.tensor([[1.0, 1.0]]), torch.tensor([[1.0, 0.0, 1.0]]),
+        ...                               torch.tensor([[1.0, 0.0, 0.0]]), torch.tensor([0.5]), torch.tensor([2.0]),
+        ...                               3, 3, backend="torch")
+        >>> rgb.shape, rgb[1, 1].tolist(), alpha[1, 1].item(), depth[1, 1].item()
+        (torch.Size([3, 3, 3]), [0.5, 0.0, 0.0], 0.5, 1.0)
     """
     _check_inputs(means2d, conics, colors, opacities, depths)
     chosen = resolve_backend(backend, means2d.device)

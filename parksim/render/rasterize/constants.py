@@ -1,5 +1,7 @@
 """Compositing thresholds shared by every rasterizer backend (the 3DGS values)."""
 
+__all__ = ["ALPHA_MIN", "ALPHA_MAX", "T_MIN", "TILE"]
+
 ALPHA_MIN: float = 1.0 / 255.0
 """A Gaussian-pixel pair with alpha below this is skipped."""
 

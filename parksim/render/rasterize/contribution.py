@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 
 from ..project_fast import keep_torch_threads
+from ._kernels import _pair_alpha, _start_tile, _tile_box
 from .constants import T_MIN, TILE
 from .cpu import _f32, _heaviest_first
-from ._kernels import _pair_alpha, _start_tile, _tile_box
 from .tiles import bin_gaussians
 
 __all__ = ["max_weights"]

@@ -18,6 +18,8 @@ from . import _kernels as kernels
 from .constants import T_MIN
 from .tiles import TileBins, bin_gaussians
 
+__all__ = ["rasterize_cpu", "composite", "composite_many", "Image"]
+
 
 def _f32(t: Tensor) -> np.ndarray:
     """Detached, contiguous float32 numpy array of a tensor (copied to the CPU if needed)."""

@@ -13,6 +13,8 @@ import numpy as np
 
 from .constants import ALPHA_MIN
 
+__all__ = ["threshold_q", "half_height", "x_span", "pixel_range", "fast_exp", "SPAN_MARGIN"]
+
 SPAN_MARGIN = 1e-3
 """Pixels added on each side of an ellipse span so float rounding never drops a pair at the threshold."""
 

@@ -13,6 +13,8 @@ from torch import Tensor
 from .constants import ALPHA_MIN, TILE
 from .reference import gaussian_is_drawable
 
+__all__ = ["rasterize_gsplat"]
+
 
 def _import_gsplat():
     """gsplat module, or a RuntimeError saying what is missing."""

@@ -12,6 +12,8 @@ from torch import Tensor
 from ...camera import pixel_grid
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
+__all__ = ["rasterize_reference", "max_weights_reference", "gaussian_is_drawable"]
+
 
 def gaussian_is_drawable(conics: Tensor, opacities: Tensor) -> Tensor:
     """[M] bool: conic positive definite and finite, and opacity able to reach ALPHA_MIN; others are culled."""

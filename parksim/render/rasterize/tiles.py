@@ -18,6 +18,8 @@ from ..scratch import Allocator, fresh
 from .constants import ALPHA_MIN, TILE
 from .ellipse import half_height, pixel_range, threshold_q, x_span
 
+__all__ = ["bin_gaussians", "TileBins", "PACKED", "MAX_PER_TILE"]
+
 PACKED = 16
 """Columns of a packed Gaussian row: mean x, y; conic a, b, c; opacity; r, g, b; depth; first, last pixel row."""
 MAX_PER_TILE = 1 << 24

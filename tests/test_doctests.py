@@ -1,0 +1,19 @@
+"""The examples in the public entry points' docstrings run and print what they show (pytest does not collect
+doctests by itself: ``testpaths`` is ``tests``)."""
+
+from __future__ import annotations
+
+import doctest
+import importlib
+
+import pytest
+
+MODULES = ["parksim.camera.base", "parksim.render.rasterize", "parksim.ipm"]
+"""Modules whose docstrings carry examples: ``CameraModel.project``/``unproject``, ``rasterize``, ``IPM``."""
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_docstring_examples(name):
+    result = doctest.testmod(importlib.import_module(name), optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0, f"{name} has no docstring examples"
+    assert result.failed == 0, f"{result.failed} of {result.attempted} examples in {name} failed (output above)"
