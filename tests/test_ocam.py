@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from parksim.camera import OCamFisheye
+from parksim.camera import OCamFisheye, camera_from_dict
 
 FIXTURES = Path(__file__).parent / "fixtures" / "ocam"
 TXT = FIXTURES / "calib_results_bf_uv_fe.txt"      # BSD-3-Clause, ctu-mrs/uvdar_core
@@ -296,7 +296,8 @@ def test_serialisation_and_scaling():
         cam = variant(which)
         d = json.loads(json.dumps(cam.to_dict()))
         assert d["model"] == "ocam"
-        again = OCamFisheye(**{k: v for k, v in d.items() if k != "model"})
+        again = camera_from_dict(d)   # what rig.json and bundles read
+        assert isinstance(again, OCamFisheye)
         assert again.to_dict() == cam.to_dict() and again.theta_max == cam.theta_max
         half = cam.scaled(0.5)
         pts = torch.from_numpy(directions(cam.theta_max - 0.01, 200, seed=9))

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from .base import CameraModel
+from .ocam import OCamFisheye
 
 __all__ = ["OpenCVFisheye", "RadialPolyFisheye", "Pinhole", "camera_from_dict"]
 
@@ -131,7 +132,8 @@ class Pinhole(CameraModel):
                        _scale_centre(float(self.cx), s), _scale_centre(float(self.cy), s), self.max_fov_deg)
 
 
-_MODELS: dict[str, type[CameraModel]] = {c.model: c for c in (OpenCVFisheye, RadialPolyFisheye, Pinhole)}
+_MODELS: dict[str, type[CameraModel]] = {c.model: c for c in (OpenCVFisheye, RadialPolyFisheye, Pinhole,
+                                                                        OCamFisheye)}
 
 
 def camera_from_dict(d: dict[str, Any]) -> CameraModel:
