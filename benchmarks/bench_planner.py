@@ -19,10 +19,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from sim_fixtures import make_bundle  # noqa: E402
-
 from parksim.env import ParkingEnv  # noqa: E402
 from parksim.planners import run_episode  # noqa: E402
+from sim_fixtures import make_bundle  # noqa: E402
 
 
 def main() -> None:

@@ -24,9 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from sim_fixtures import make_bundle  # noqa: E402
-
 from parksim.bench.procs import rss_mib, serve_bundle  # noqa: E402
+from sim_fixtures import make_bundle  # noqa: E402
 
 
 def _pose(rng: np.random.Generator) -> str:

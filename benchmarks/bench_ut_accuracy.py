@@ -22,8 +22,14 @@ import torch
 from parksim.camera import OpenCVFisheye
 from parksim.gaussians import GaussianScene
 from parksim.geometry import rotation_from_quaternion
-from parksim.render.projection import (BLUR_PX2, SigmaPoints, UTParams, _sigma_point_moments, covariance_sqrt,
-                                       project_gaussians)
+from parksim.render.projection import (
+    BLUR_PX2,
+    SigmaPoints,
+    UTParams,
+    _sigma_point_moments,
+    covariance_sqrt,
+    project_gaussians,
+)
 
 ANGLES = (0, 30, 60, 80, 85, 90, 95)
 RATIOS = (0.01, 0.05, 0.3)
@@ -155,7 +161,7 @@ def main() -> None:
     t = timing(args.gaussians, args.repeats)
     print(f"\nProjection (cull + project, forward, no grad), {args.gaussians} Gaussians x 4 cameras 640x640, "
           f"{t['visible per camera']:.0f} visible per camera, {100 * t['rich fraction']:.2f}% of them on the rich set:\n")
-    print("| method | seconds (best of %d) | ratio to UT 7-pt |" % args.repeats)
+    print(f"| method | seconds (best of {args.repeats}) | ratio to UT 7-pt |")
     print("|---|---|---|")
     for name in ("UT 7-pt", "ParkSim default (adaptive)", "EWA"):
         print(f"| {name} | {t[name]:.3f} | {t[name] / t['UT 7-pt']:.2f} |")

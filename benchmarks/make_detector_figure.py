@@ -19,6 +19,7 @@ from recon.bev_draw import WHITE, draw_detections, draw_labels
 from recon.detectors import load_detector
 from recon.detectors.dataset import BEVItem, iter_items
 
+
 def panel(item: BEVItem, model: torch.nn.Module, title: str) -> np.ndarray:
     """One annotated BEV."""
     bev = torch.from_numpy(item.image).permute(2, 0, 1).float()[None] / 255.0

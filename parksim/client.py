@@ -13,9 +13,10 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -114,7 +115,7 @@ class LocalSim:
         self._subsets_lock = threading.Lock()
 
     @classmethod
-    def from_dir(cls, directory: str | Path) -> "LocalSim":
+    def from_dir(cls, directory: str | Path) -> LocalSim:
         """Load the bundle folder ``directory``; its name is the scene id."""
         return cls(Path(directory), Path(directory).name)
 

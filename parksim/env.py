@@ -11,8 +11,9 @@ it has stopped. Touching a pillar, parked car or wall ends the episode.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import gymnasium as gym
 import numpy as np

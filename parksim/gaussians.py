@@ -8,9 +8,9 @@ the INRIA 3DGS PLY layout so standard splat viewers open them.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -84,16 +84,16 @@ class GaussianScene:
     def _tensors(self) -> dict[str, Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sh_degree"}
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> "GaussianScene":
+    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GaussianScene:
         """A copy with every tensor cast (autograd flows through the cast)."""
         return GaussianScene(**{k: v.to(dtype=dtype, device=device) for k, v in self._tensors().items()},
                              sh_degree=self.sh_degree)
 
-    def subset(self, mask: Tensor) -> "GaussianScene":
+    def subset(self, mask: Tensor) -> GaussianScene:
         """The Gaussians selected by a boolean mask or an index tensor."""
         return GaussianScene(**{k: v[mask] for k, v in self._tensors().items()}, sh_degree=self.sh_degree)
 
-    def spatially_sorted(self) -> "GaussianScene":
+    def spatially_sorted(self) -> GaussianScene:
         """The same Gaussians in the order of a 3D Morton (Z-order) curve through their means.
 
         Gaussians close in space become close in memory, so the rasterizer's reads for one image tile hit a
@@ -114,7 +114,7 @@ class GaussianScene:
     @classmethod
     def random(cls, n: int, bounds: Sequence[Sequence[float]] = ((-5, -5, 0), (5, 5, 2)), sh_degree: int = 0,
                seed: int = 0, scale_range: tuple[float, float] = (0.02, 0.2),
-               dtype: torch.dtype = torch.float32) -> "GaussianScene":
+               dtype: torch.dtype = torch.float32) -> GaussianScene:
         """Random Gaussians uniform in the box ``bounds = (lo, hi)``: for tests and benchmarks."""
         g = torch.Generator().manual_seed(seed)
         lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in bounds)
@@ -144,7 +144,7 @@ class GaussianScene:
         PlyData([PlyElement.describe(data, "vertex")]).write(str(path))
 
     @classmethod
-    def load_ply(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> "GaussianScene":
+    def load_ply(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> GaussianScene:
         """Read the INRIA 3DGS layout; missing or non-finite fields raise ``PLYFormatError``."""
         from plyfile import PlyData
 

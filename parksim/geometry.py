@@ -8,7 +8,7 @@ An ego pose is ``T_world_vehicle``; a planner pose ``(x, y, yaw)`` lies on the g
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor

@@ -10,7 +10,7 @@ BEV pixels it contributes to (its weight > 0): cheap, and differentiable with re
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch

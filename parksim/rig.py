@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -77,7 +78,7 @@ class BEVSpec:
                 "ego_box": list(self.ego_box) if self.ego_box is not None else None}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "BEVSpec":
+    def from_dict(cls, d: Mapping[str, Any]) -> BEVSpec:
         unknown = set(d) - {"width", "height", "m_per_px", "center_x", "center_y", "ego_box"}
         if unknown:
             raise CalibrationError(f"unknown BEV spec keys {sorted(unknown)}")
@@ -120,7 +121,7 @@ class Rig:
                 "bev": self.bev.to_dict()}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], source: str = "rig") -> "Rig":
+    def from_dict(cls, d: Mapping[str, Any], source: str = "rig") -> Rig:
         if not isinstance(d, Mapping) or not isinstance(d.get("cameras"), Mapping) or not d["cameras"]:
             raise CalibrationError(f"{source}: expected a mapping with a non-empty 'cameras' mapping")
         cams = {}
@@ -148,7 +149,7 @@ class Rig:
         path.write_text(text)
 
     @classmethod
-    def load(cls, path: str | Path) -> "Rig":
+    def load(cls, path: str | Path) -> Rig:
         path = Path(path)
         if not path.is_file():
             raise CalibrationError(f"rig file not found: {path}")
@@ -165,7 +166,7 @@ class Rig:
 
     @classmethod
     def from_opencv_yaml(cls, paths: Mapping[str, str | Path], T_vehicle_camera: Mapping[str, Tensor],
-                         bev: BEVSpec | None = None, max_fov_deg: float = 190.0) -> "Rig":
+                         bev: BEVSpec | None = None, max_fov_deg: float = 190.0) -> Rig:
         """Cameras from OpenCV fisheye YAML files (``camera_matrix``, ``dist_coeffs``, ``resolution``).
 
         Those files carry no extrinsics, so each camera's ``T_vehicle_camera`` is given
@@ -183,7 +184,7 @@ class Rig:
 
     @classmethod
     def from_woodscape(cls, paths: Mapping[str, str | Path] | list[str | Path], bev: BEVSpec | None = None,
-                       max_fov_deg: float = 190.0) -> "Rig":
+                       max_fov_deg: float = 190.0) -> Rig:
         """Cameras from WoodScape calibration JSON files; names come from the files' ``name`` unless given.
 
         WoodScape's vehicle frame is ISO 8855 on the ground under the rear-axle centre, the

@@ -64,7 +64,7 @@ class VisibilityGrid:
                  shape=np.array([self.nx, self.ny]), offsets=self.offsets, indices=self.indices, measured=self.measured)
 
     @classmethod
-    def load(cls, path: str | Path) -> "VisibilityGrid":
+    def load(cls, path: str | Path) -> VisibilityGrid:
         """Read a grid written by ``save``; a malformed file raises ValueError."""
         try:
             with np.load(path, allow_pickle=False) as z:

@@ -8,10 +8,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from parksim.camera import pixel_grid
 from parksim.rig import RigCamera
 
 from .losses import masked_mean, ssim_map
-from parksim.camera import pixel_grid
 
 __all__ = ["psnr", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
 

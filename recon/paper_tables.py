@@ -10,7 +10,8 @@ Rows are matched across scenes by label; a cell a scene lacks reads "n/a".
 
 from __future__ import annotations
 
-from typing import Any, Callable, Iterable
+from collections.abc import Callable, Iterable
+from typing import Any
 
 __all__ = ["tables_markdown", "DETECTOR_TITLES"]
 

@@ -26,7 +26,7 @@ class GaussianParams:
                                           eps=1e-15, fused=True)
 
     @classmethod
-    def from_scene(cls, scene: GaussianScene, max_sh_degree: int, lrs: dict[str, float]) -> "GaussianParams":
+    def from_scene(cls, scene: GaussianScene, max_sh_degree: int, lrs: dict[str, float]) -> GaussianParams:
         """Split SH into DC and rest, zero-padding the rest up to ``max_sh_degree``."""
         n, k = len(scene), (max_sh_degree + 1) ** 2
         rest = torch.zeros(n, k - 1, 3, dtype=scene.sh.dtype)

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import datetime
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from parksim.bundle import Bundle, recorded_path, save
-from parksim.fileio import atomic_write, remove_stale_temps
 from parksim.data import DatasetReader
+from parksim.fileio import atomic_write, remove_stale_temps
 
 from .checkpoint import checkpoint_path, load_checkpoint
 from .config import TrainConfig, dump_config, load_config

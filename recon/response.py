@@ -12,9 +12,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from parksim.rig import Rig
-
 from parksim.camera import pixel_grid
+from parksim.rig import Rig
 
 __all__ = ["CameraResponse"]
 

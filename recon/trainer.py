@@ -12,9 +12,10 @@ L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rat
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -269,7 +270,7 @@ class Trainer:
 
     @classmethod
     def from_checkpoint(cls, reader: DatasetReader, config: TrainConfig, out_dir: Path,
-                        log: Callable[[str], None] = print) -> "Trainer":
+                        log: Callable[[str], None] = print) -> Trainer:
         """A trainer continuing the run in ``out_dir`` from its last checkpoint."""
         state = load_checkpoint(checkpoint_path(out_dir))
         trainer = cls(reader, config, out_dir, log)

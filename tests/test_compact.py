@@ -11,8 +11,14 @@ import torch
 from parksim import bundle as bundle_io
 from parksim.cli import main
 from parksim.client import LocalSim
-from parksim.compact import (CompactOptions, compact_bundle, lower_sh, measure_bundle, pose_weights, reduce_bundle,
-                             select)
+from parksim.compact import (
+    CompactOptions,
+    lower_sh,
+    measure_bundle,
+    pose_weights,
+    reduce_bundle,
+    select,
+)
 from parksim.gaussians import GaussianScene
 from parksim.render import render
 from parksim.render.rasterize.contribution import max_weights

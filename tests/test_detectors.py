@@ -16,8 +16,19 @@ import pytest
 import torch
 
 import recon.detectors
-from recon.detectors import (DecodeOptions, Detections, DMPRDetector, GCNDetector, LabelError, MarkingPoint,
-                             PointMaps, Slot, SlotLabels, load_detector, read_ps2_labels)
+from recon.detectors import (
+    DecodeOptions,
+    Detections,
+    DMPRDetector,
+    GCNDetector,
+    LabelError,
+    MarkingPoint,
+    PointMaps,
+    Slot,
+    SlotLabels,
+    load_detector,
+    read_ps2_labels,
+)
 from recon.detectors.dataset import hflip, photometric, rotate
 from recon.detectors.decode import decode_points, infer_slots
 from recon.detectors.evaluate import MatchOptions, average_precision, match_points, match_slots, summarize

@@ -146,7 +146,7 @@ def test_eval_report_has_slot_scores_and_no_invented_lpips(full_run: Path, tiny_
 
 
 def test_lpips_from_weight_files(tmp_path: Path) -> None:
-    from recon.lpips import LPIPS, LPIPSError, _NETS, _features
+    from recon.lpips import _NETS, LPIPS, LPIPSError, _features
 
     g = torch.Generator().manual_seed(0)
     backbone = {f"features.{k}": torch.randn(v.shape, generator=g) * 0.1

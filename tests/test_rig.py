@@ -11,8 +11,16 @@ from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
 from parksim.assets import SAMPLE_DIR as SAMPLE
 from parksim.camera import OpenCVFisheye, RadialPolyFisheye
-from parksim.geometry import (as_pose, compose, invert_transform, pose_from_xy_yaw, quaternion_from_rotation,
-                              rotation_from_quaternion, transform_points, xy_yaw_from_pose)
+from parksim.geometry import (
+    as_pose,
+    compose,
+    invert_transform,
+    pose_from_xy_yaw,
+    quaternion_from_rotation,
+    rotation_from_quaternion,
+    transform_points,
+    xy_yaw_from_pose,
+)
 from parksim.rig import BEVSpec, CalibrationError, Rig, RigCamera
 
 # WoodScape's published front-camera calibration (scripts/calibration/front.json), written from the documented format.

@@ -6,7 +6,6 @@ The oracle for (a) is the sample's own pipeline run with OpenCV, independent of 
 coordinates, so every stitched bird's-eye pixel carries the fisheye pixel the calibration implies.
 """
 
-from pathlib import Path
 
 import cv2
 import numpy as np

@@ -11,8 +11,23 @@ from torch import nn
 from parksim.ipm import IPM
 from parksim.synth.rig import avm_rig
 from recon.detectors import DMPRDetector, GCNDetector
-from recon.slot_aware import (SlotAwareConfig, SlotAwareStep, SlotFrame, Variant, align_loss, cam_loss, edge_tubes,
-                              ipm_loss, mix, shape_confidence, spec_of, top_edges, total_loss, upsample, weighted_l1)
+from recon.slot_aware import (
+    SlotAwareConfig,
+    SlotAwareStep,
+    SlotFrame,
+    Variant,
+    align_loss,
+    cam_loss,
+    edge_tubes,
+    ipm_loss,
+    mix,
+    shape_confidence,
+    spec_of,
+    top_edges,
+    total_loss,
+    upsample,
+    weighted_l1,
+)
 from sim_fixtures import garage_scene
 
 
@@ -205,7 +220,6 @@ def test_detector_variants_need_a_detector() -> None:
 # --- the trainer hook ---------------------------------------------------------------------------------------------
 def test_trainer_runs_photometric_then_slot_aware_iterations(tmp_path) -> None:
     import json
-    from pathlib import Path
 
     from parksim.cli import main as cli_main
     from parksim.data import DatasetReader

@@ -17,8 +17,18 @@ import torch
 from ..data import DatasetReader
 from ..render import render
 from ..rig import Rig
-from .common import Timing, fit_exponent, md_table, metadata, progress, pyplot, save_figure, set_threads, \
-    time_medians, write_result
+from .common import (
+    Timing,
+    fit_exponent,
+    md_table,
+    metadata,
+    progress,
+    pyplot,
+    save_figure,
+    set_threads,
+    time_medians,
+    write_result,
+)
 from .scenes import garage_scene
 
 __all__ = ["run"]

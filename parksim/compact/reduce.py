@@ -49,8 +49,8 @@ def sh_change_bound(sh: Tensor, degree: int) -> Tensor:
     Band l's basis has norm sqrt((2l + 1) / 4 pi) for every unit direction (addition theorem), so by
     Cauchy-Schwarz its term is at most that times the norm of the band's coefficients, per channel.
     """
-    bands = [sh[:, l * l:(l + 1) * (l + 1)].norm(dim=1).amax(dim=-1) * math.sqrt((2 * l + 1) / (4 * math.pi))
-             for l in range(degree + 1)]
+    bands = [sh[:, b * b:(b + 1) * (b + 1)].norm(dim=1).amax(dim=-1) * math.sqrt((2 * b + 1) / (4 * math.pi))
+             for b in range(degree + 1)]
     per_band = torch.stack(bands, dim=1)                                   # [N, degree + 1]
     tail = per_band.flip(1).cumsum(1).flip(1)                              # bands >= d
     return torch.cat([tail[:, 1:], torch.zeros_like(tail[:, :1])], dim=1)  # bands > d

@@ -10,8 +10,9 @@ on the goal. The example of closed-loop use; not an optimal planner (forward mov
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

@@ -12,8 +12,8 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -68,7 +68,7 @@ class _RigView:
         return self.lens[name]
 
 
-_VIEWS: "OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]]" = OrderedDict()
+_VIEWS: OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]] = OrderedDict()
 
 
 _VIEWS_LOCK = threading.Lock()

@@ -79,7 +79,7 @@ class SigmaPoints:
 
     @staticmethod
     @lru_cache(maxsize=16)
-    def unscented(alpha: float, beta: float, kappa: float) -> "SigmaPoints":
+    def unscented(alpha: float, beta: float, kappa: float) -> SigmaPoints:
         """The 2n+1 scaled unscented set (Julier, Wan & van der Merwe), n = 3."""
         n = 3
         lam = alpha * alpha * (n + kappa) - n
@@ -95,7 +95,7 @@ class SigmaPoints:
 
     @staticmethod
     @lru_cache(maxsize=1)
-    def fifth_degree() -> "SigmaPoints":
+    def fifth_degree() -> SigmaPoints:
         """Stroud's degree-5 cubature for N(0, I_n), n = 3: 2n^2+1 = 19 points, all weights positive.
 
         Exact for polynomials up to degree 5, so the covariance of a locally quadratic projection

@@ -6,7 +6,7 @@ downstream evaluation of reconstructed BEVs (``detect`` + ``evaluate``).
 """
 
 from .backbone import PointMaps
-from .decode import Detections, DecodeOptions, MarkingPoint, Slot
+from .decode import DecodeOptions, Detections, MarkingPoint, Slot
 from .dmpr import DMPRDetector
 from .gcn import GCNDetector
 from .labels_ps2 import LabelError, SlotLabels, read_ps2_labels

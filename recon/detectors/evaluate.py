@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
-from .decode import DecodeOptions, Detections
 from .dataset import iter_items
+from .decode import DecodeOptions, Detections
 from .labels_ps2 import SlotLabels
 
 __all__ = ["MatchOptions", "match_points", "match_slots", "Metrics", "summarize", "Evaluator", "evaluate_folder"]

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +44,7 @@ class SlotLabels:
 
     @classmethod
     def from_parksim(cls, data: Mapping[str, Any], width: int, height: int, m_per_px: float,
-                     source: str | Path = "labels") -> "SlotLabels":
+                     source: str | Path = "labels") -> SlotLabels:
         """From a ParkSim label dict (``DatasetReader.labels``, which checks the values) read from ``source``;
         slot angles must agree with the entrance points (``LabelError`` names ``source`` otherwise)."""
         marks = np.array([[m["x"], m["y"], m["direction"], 1.0 if m["shape"] == "L" else 0.0] for m in data["marks"]],

@@ -2,7 +2,7 @@
 
 from .config import DetectorError, DetectorRef, SlotAwareConfig
 from .losses import align_loss, cam_loss, ipm_loss, total_loss, weighted_l1
-from .step import SlotAwareStep, SlotAwareTerms, SlotFrame, freeze, frame_has_slots
+from .step import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, freeze
 from .variants import Variant, VariantSpec, spec_of
 from .weights import edge_tubes, edge_weights, mix, shape_confidence, top_edges, upsample
 

@@ -11,8 +11,8 @@ Frames whose ground truth has no slot skip the detector and the slot terms (L_rg
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
