@@ -149,11 +149,13 @@ def main() -> None:
     text = [
         "# Scene compaction (`parksim compact`)", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
-        f"--variants {args.variants} --cell {args.cell:g} --per-cell {args.per_cell} --sh-tolerance {args.sh_tolerance:g} "
-        f"--repeats {args.repeats}" + (f" --weights {args.weights}" if args.weights else "") + "`", "",
+        f"--variants {args.variants} --cell {args.cell:g} --per-cell {args.per_cell} "
+        f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats}"
+        + (f" --weights {args.weights}" if args.weights else "") + "`", "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
         f"{numba.get_num_threads()}, torch {torch.__version__}; started {started:%Y-%m-%dT%H:%M}Z; load average "
-        f"{load_start[0]:.1f} at the start, {load_end[0]:.1f} at the end (shared machine: other jobs were running).", "",
+        f"{load_start[0]:.1f} at the start, {load_end[0]:.1f} at the end "
+        "(shared machine: other jobs were running).", "",
         f"Scene: {len(s)} Gaussians, SH degree {s.sh_degree}; {len(reader.split['test'])} test frames x "
         f"{len(reader.rig.names)} cameras at {reader.rig.cameras[reader.rig.names[0]].model.width}x"
         f"{reader.rig.cameras[reader.rig.names[0]].model.height}. Measurement: {len(grid.poses)} drivable poses in "

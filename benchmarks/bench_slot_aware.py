@@ -171,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
                            f"{'this invocation' if trained else 'an earlier invocation (reused)'} |")
         start = time.perf_counter()
         entries = [(photometric, "Photometric only")] + [(root / r.name, r.label) for r in runs]
-        results.append(evaluate_runs(entries, data, models, root / "eval", decode=DecodeOptions(threshold=args.threshold)))
+        results.append(evaluate_runs(entries, data, models, root / "eval",
+                                     decode=DecodeOptions(threshold=args.threshold)))
         timings.append(f"| {data.name} | evaluation of {len(entries)} bundles | {time.perf_counter() - start:.0f} | "
                        "this invocation |")
     load_after = os.getloadavg()
@@ -179,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         "# Slot-aware phase: the paper's tables on CPU", "",
         f"`python benchmarks/bench_slot_aware.py {' '.join(sys.argv[1:] if argv is None else argv)}`", "",
         f"Started {started.isoformat(timespec='minutes')}; load average {load_before[0]:.1f} at the start and "
-        f"{load_after[0]:.1f} at the end (2 shared cores); torch {torch.__version__}, {torch.get_num_threads()} threads.",
+        f"{load_after[0]:.1f} at the end (2 shared cores); torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads.",
         f"Schedule: photometric phase `{Path(args.photometric_config).stem}`"
         + (f" cut to {args.photometric_iterations} iterations" if args.photometric_iterations else "")
         + f" (shared by all runs), then {iterations} "

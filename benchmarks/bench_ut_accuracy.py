@@ -42,7 +42,8 @@ def lens() -> OpenCVFisheye:
     return OpenCVFisheye(1280, 1280, 320.0, 320.0, 639.5, 639.5, [0.05, -0.01, 0.002, -0.0005], max_fov_deg=200.0)
 
 
-def monte_carlo(mu: torch.Tensor, L: torch.Tensor, cam: OpenCVFisheye, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+def monte_carlo(mu: torch.Tensor, L: torch.Tensor, cam: OpenCVFisheye, n: int,
+                seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean and covariance of ``camera.project(mu + L z)``, z ~ N(0, I), in chunks (float64)."""
     g = torch.Generator().manual_seed(seed)
     s1 = torch.zeros(2, dtype=torch.float64)
@@ -113,7 +114,8 @@ def timing(n: int, repeats: int) -> dict[str, float]:
     base = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     views = []
     for k in range(4):
-        Rz = rotation_from_quaternion(torch.tensor([math.cos(k * math.pi / 4), 0, 0, math.sin(k * math.pi / 4)])).float()
+        half = k * math.pi / 4
+        Rz = rotation_from_quaternion(torch.tensor([math.cos(half), 0, 0, math.sin(half)])).float()
         R_cw = (Rz @ base).T
         views.append((R_cw, -R_cw @ torch.tensor([0.0, 0.0, 1.0])))
     variants = {"UT 7-pt": dict(ut_params=UTParams(adaptive=False)), "ParkSim default (adaptive)": {},
@@ -134,8 +136,9 @@ def timing(n: int, repeats: int) -> dict[str, float]:
         proj = project_gaussians(mc, (scene.quats, scene.log_scales, R), cam)
         mu = mc[proj.index]
         visible += len(mu)
-        rich += int(((cam.theta_of(mu) > math.radians(p.adaptive_min_theta_deg))
-                     & (torch.exp(scene.log_scales[proj.index].amax(-1)) > p.adaptive_min_rel_size * mu.norm(dim=-1))).sum())
+        wide = cam.theta_of(mu) > math.radians(p.adaptive_min_theta_deg)
+        large = torch.exp(scene.log_scales[proj.index].amax(-1)) > p.adaptive_min_rel_size * mu.norm(dim=-1)
+        rich += int((wide & large).sum())
     out["rich fraction"] = rich / max(visible, 1)
     out["visible per camera"] = visible / 4
     return out
@@ -150,8 +153,8 @@ def main() -> None:
     args = ap.parse_args()
     rows = accuracy(args.samples, args.orientations)
     names = list(rows[0][2])
-    print(f"Machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}; "
-          f"{date.today()}")
+    print(f"Machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
+          f"torch {torch.__version__}; {date.today()}")
     print(f"Lens: OpenCV fisheye 1280x1280, f=320 px, 200 deg; Gaussian axes {AXES} x sigma, distance {DISTANCE} m; "
           f"Monte-Carlo {args.samples:g} samples, mean over {args.orientations} orientations.\n")
     print("| theta (deg) | sigma/d | " + " | ".join(f"{n}: mean px / cov rel" for n in names) + " |")
@@ -160,7 +163,8 @@ def main() -> None:
         print(f"| {angle} | {ratio} | " + " | ".join(f"{e[n][0]:.3f} / {100 * e[n][1]:.2f}%" for n in names) + " |")
     t = timing(args.gaussians, args.repeats)
     print(f"\nProjection (cull + project, forward, no grad), {args.gaussians} Gaussians x 4 cameras 640x640, "
-          f"{t['visible per camera']:.0f} visible per camera, {100 * t['rich fraction']:.2f}% of them on the rich set:\n")
+          f"{t['visible per camera']:.0f} visible per camera, "
+          f"{100 * t['rich fraction']:.2f}% of them on the rich set:\n")
     print(f"| method | seconds (best of {args.repeats}) | ratio to UT 7-pt |")
     print("|---|---|---|")
     for name in ("UT 7-pt", "ParkSim default (adaptive)", "EWA"):

@@ -229,7 +229,7 @@ class LocalSim:
 
 
 class RemoteSim:
-    """HTTP client of ``parksim serve`` with the ``LocalSim`` interface (``info``, ``render``, plus ``render_batch``)."""
+    """HTTP client of ``parksim serve`` with the ``LocalSim`` interface (``info``, ``render``, and ``render_batch``)."""
 
     def __init__(self, base_url: str = "http://127.0.0.1:8000", scene: str | None = None,
                  api_key: str | None = None, timeout: float = 60.0, http: Any = None) -> None:

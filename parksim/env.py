@@ -94,7 +94,8 @@ class ParkingEnv(gym.Env):
         out = {}
         for name in self.cameras:
             c = info["rig"]["cameras"][name]["intrinsics"]
-            out[name] = spaces.Box(0, 255, (round(c["height"] * self.scale), round(c["width"] * self.scale), 3), np.uint8)
+            shape = (round(c["height"] * self.scale), round(c["width"] * self.scale), 3)
+            out[name] = spaces.Box(0, 255, shape, np.uint8)
         if self.bev:
             out["bev"] = spaces.Box(0, 255, (info["bev"]["height"], info["bev"]["width"], 3), np.uint8)
         return out

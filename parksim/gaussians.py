@@ -25,7 +25,9 @@ _MAX_SH_DEGREE = 3
 
 
 class PLYFormatError(ValueError):
-    """A Gaussian PLY file is unreadable, incomplete or holds non-finite values; the message names the file and field."""
+    """A Gaussian PLY file is unreadable, incomplete or holds non-finite values.
+
+    The message names the file and the field."""
 
 
 def _degree_of(k: int) -> int | None:

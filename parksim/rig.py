@@ -204,7 +204,8 @@ class Rig:
             try:
                 intr, extr = d["intrinsic"], d["extrinsic"]
                 if intr["model"] != "radial_poly":
-                    raise CalibrationError(f"{p}: unknown camera model {intr['model']!r}; WoodScape files use 'radial_poly'")
+                    raise CalibrationError(f"{p}: unknown camera model {intr['model']!r}; "
+                                           "WoodScape files use 'radial_poly'")
                 model = RadialPolyFisheye(int(intr["width"]), int(intr["height"]),
                                           [intr["k1"], intr["k2"], intr["k3"], intr["k4"]],
                                           intr["cx_offset"], intr["cy_offset"], intr["aspect_ratio"], max_fov_deg)
@@ -253,6 +254,7 @@ def read_opencv_yaml(path: str | Path) -> dict[str, Any]:
             raise CalibrationError(f"{path}: missing {key!r}")
         arr = np.asarray(out[key], dtype=np.float64)
         if arr.size != int(np.prod(shape)) or not np.isfinite(arr).all():
-            raise CalibrationError(f"{path}: {key!r} must hold {int(np.prod(shape))} finite numbers, got {arr.ravel().tolist()}")
+            raise CalibrationError(f"{path}: {key!r} must hold {int(np.prod(shape))} finite numbers, "
+                                   f"got {arr.ravel().tolist()}")
         out[key] = arr.reshape(shape)
     return out

@@ -116,7 +116,8 @@ class Obstacles:
         """(n, 4, 2) world corners of every box, counter-clockwise."""
         signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float64)
         local = signs[None] * self.halves[:, None, :]
-        return self.centres[:, None, :] + local[..., 0:1] * self.axes[:, None, 0] + local[..., 1:2] * self.axes[:, None, 1]
+        return (self.centres[:, None, :] + local[..., 0:1] * self.axes[:, None, 0]
+                + local[..., 1:2] * self.axes[:, None, 1])
 
     def hits(self, polygon: np.ndarray) -> np.ndarray:
         """Boolean per box: does the convex rectangle ``polygon`` (4, 2) overlap it (separating-axis test)."""

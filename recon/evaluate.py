@@ -65,7 +65,8 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
         gt = reader.image(camera, frame)
         pred = render_view(scene, reader, frame, camera, response, backend).clamp(0.0, 1.0)
         mask = masks[camera]
-        row: dict[str, Any] = {"frame": frame, "camera": camera, "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask)}
+        row: dict[str, Any] = {"frame": frame, "camera": camera,
+                               "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask)}
         if len(segments):
             depth_path = reader.layout.depth(camera, frame)
             depth = reader.depth(camera, frame) if depth_path.is_file() else None

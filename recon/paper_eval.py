@@ -33,7 +33,8 @@ from .slot_aware import Variant
 
 __all__ = ["RunInfo", "describe_run", "evaluate_runs", "VARIANT_TITLES"]
 
-VARIANT_TITLES = {Variant.DIRECT_IPM: "Direct IPM L1 supervision", Variant.FEATURE_ONLY: "Feature-level supervision only",
+VARIANT_TITLES = {Variant.DIRECT_IPM: "Direct IPM L1 supervision",
+                  Variant.FEATURE_ONLY: "Feature-level supervision only",
                   Variant.TEACHER_ONLY: "Teacher-only weighting", Variant.STUDENT_ONLY: "Student-only weighting",
                   Variant.FULL: "Full slot-aware"}
 """Row names of the paper's ablation table."""

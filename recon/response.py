@@ -35,7 +35,8 @@ class CameraResponse:
         model = rig.cameras[name].model
         uv = pixel_grid(model.width, model.height)
         fx, fy = float(model.fx), float(model.fy)
-        r2 = (((uv[..., 0] - float(model.cx)) / fx) ** 2 + ((uv[..., 1] - float(model.cy)) / fy) ** 2) / model.rho_max ** 2
+        x, y = (uv[..., 0] - float(model.cx)) / fx, (uv[..., 1] - float(model.cy)) / fy
+        r2 = (x ** 2 + y ** 2) / model.rho_max ** 2
         return r2.to(torch.float32)[..., None]
 
     def __call__(self, image: Tensor, camera: str) -> Tensor:

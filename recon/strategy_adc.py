@@ -58,7 +58,8 @@ class ADCStrategy(Strategy):
             self.grad_sum, self.count = torch.zeros(len(params)), torch.zeros(len(params))
         if step < c.refine_stop and step % c.reset_every == 0:
             limit = math.log(_RESET_OPACITY / (1 - _RESET_OPACITY))
-            params.overwrite(torch.arange(len(params)), {"opacity_logits": params["opacity_logits"].detach().clamp(max=limit)})
+            clamped = params["opacity_logits"].detach().clamp(max=limit)
+            params.overwrite(torch.arange(len(params)), {"opacity_logits": clamped})
         return stats
 
     def _refine(self, params: GaussianParams, step: int, generator: torch.Generator) -> dict[str, int]:

@@ -107,7 +107,8 @@ class Trainer:
 
     def initialise(self) -> None:
         """Fresh parameters from the configured initial point cloud."""
-        scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree, self.generator)
+        scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree,
+                                              self.generator)
         self.params = GaussianParams.from_scene(scene, self.cfg.photometric.sh_degree, self._lrs())
         self.log(f"initialised {len(scene)} Gaussians from {self.init_note}; scene extent {self.extent:.1f} m")
 
@@ -230,9 +231,9 @@ class Trainer:
         refine = self.strategy.step_post_update(self.params, info)
         with torch.no_grad():
             train_psnr = psnr(batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0)
-        return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()), "psnr": train_psnr,
-                "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr, **refine,
-                **{k: v for k, v in slot.items() if k not in ("loss", "rgb_loss")}}
+        return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()),
+                "psnr": train_psnr, "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr,
+                **refine, **{k: v for k, v in slot.items() if k not in ("loss", "rgb_loss")}}
 
     # --- the run ------------------------------------------------------------------------------
     def evaluate(self) -> dict[str, float | None]:

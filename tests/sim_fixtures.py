@@ -66,9 +66,10 @@ def garage_scene(preset: str = "tiny", n: int = 3000, seed: int = 0) -> tuple[Ga
 
 def make_bundle(out: str | Path, preset: str = "tiny", n: int = 3000, seed: int = 0,
                 size: tuple[int, int] | None = None, bev_px: int | None = None) -> Path:
-    """Write a bundle folder (gaussians.ply, rig.json, map.json, bundle.json); ``size``/``bev_px`` override the preset's.
+    """Write a bundle folder (gaussians.ply, rig.json, map.json, bundle.json).
 
-    The Gaussians are stored spatially sorted, as ``parksim reconstruct`` stores them."""
+    ``size``/``bev_px`` override the preset's. The Gaussians are stored spatially sorted, as ``parksim reconstruct``
+    stores them."""
     p = get_preset(preset)
     width, height = size or (p.width, p.height)
     scene, world_map = garage_scene(preset, n, seed)

@@ -143,8 +143,9 @@ def _scores(point_flags: list[bool], slot_flags: list[bool], points: int, slots:
 
 
 def test_markdown_cells_from_hand_counts() -> None:
-    run = {"label": "Photometric only", "variant": None, "iterations": 10, "psnr": 30.123, "ssim": 0.9, "slot_psnr": 28.0,
-           "slot_ssim": 0.8, "detection": {"gcn": _scores([True, True, True, False], [True, False], 6, 4)}}
+    run = {"label": "Photometric only", "variant": None, "iterations": 10, "psnr": 30.123, "ssim": 0.9,
+           "slot_psnr": 28.0, "slot_ssim": 0.8,
+           "detection": {"gcn": _scores([True, True, True, False], [True, False], 6, 4)}}
     one = {"scene": "s1", "test_frames": [0, 10], "runs": [run],
            "gt": {"gcn": _scores([True] * 5, [True, True, True], 6, 4)}}
     two = {"scene": "s3", "test_frames": [0], "runs": [], "gt": {"gcn": _scores([], [], 2, 1)}}

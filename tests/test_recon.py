@@ -78,7 +78,8 @@ def test_kill_and_resume_matches_uninterrupted(full_run: Path, tiny_data: Path, 
         [r["iteration"] for r in read_metrics(full_run / "metrics.jsonl")]
 
 
-def test_corrupt_checkpoint_is_a_clear_error_and_nothing_changes(full_run: Path, tiny_data: Path, tmp_path: Path) -> None:
+def test_corrupt_checkpoint_is_a_clear_error_and_nothing_changes(full_run: Path, tiny_data: Path,
+                                                                 tmp_path: Path) -> None:
     out = tmp_path / "broken"
     shutil.copytree(full_run, out)
     ckpt = checkpoint_path(out)
@@ -152,7 +153,8 @@ def test_lpips_from_weight_files(tmp_path: Path) -> None:
     backbone = {f"features.{k}": torch.randn(v.shape, generator=g) * 0.1
                 for k, v in _features(_NETS["alex"][0]).state_dict().items()}
     torch.save(backbone, tmp_path / "alexnet.pth")
-    torch.save({f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) for i, c in enumerate([64, 192, 384, 256, 256])},
+    widths = [64, 192, 384, 256, 256]
+    torch.save({f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) for i, c in enumerate(widths)},
                tmp_path / "alex.pth")
     lpips = LPIPS("alex", tmp_path / "alexnet.pth", tmp_path / "alex.pth")
     a, b = torch.rand(64, 64, 3, generator=g), torch.rand(64, 64, 3, generator=g)
@@ -187,7 +189,8 @@ def test_colmap_errors_are_clear(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not os.environ.get("PARKSIM_COLMAP_DATA"),
-                    reason="set PARKSIM_COLMAP_DATA to a 640x480 synthetic dataset (e.g. data/scene1): SfM takes ~1 min")
+                    reason="set PARKSIM_COLMAP_DATA to a 640x480 synthetic dataset (e.g. data/scene1): "
+                           "SfM takes ~1 min")
 def test_sfm_recovers_poses_up_to_similarity(tmp_path: Path) -> None:
     pytest.importorskip("pycolmap")
     from recon.colmap import pose_errors, run_sfm, vehicle_poses

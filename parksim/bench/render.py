@@ -233,7 +233,8 @@ def _plot(points: list[dict[str, Any]], meta: dict[str, Any], png: Path) -> None
     ax.plot([p["wall_ms"] for p in front], [min(p["psnr_vs_full"], PSNR_CAP_DB) for p in front], "C3-", lw=1,
             label="Pareto front (x: renders other cameras/BEV)")
     ax.set(xscale="log", xlabel="median latency (ms, wall)",
-           ylabel=f"PSNR vs full quality (dB; exact = {PSNR_CAP_DB:g})", title="render: latency vs error against the full-quality render")
+           ylabel=f"PSNR vs full quality (dB; exact = {PSNR_CAP_DB:g})",
+           title="render: latency vs error against the full-quality render")
     ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
     if with_gt:

@@ -76,7 +76,8 @@ class DatasetReader:
             poses = torch.tensor([e["T_world_vehicle"] for e in entries], dtype=torch.float64).reshape(-1, 4, 4)
             stamps = [float(e["timestamp"]) for e in entries]
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
-            raise DatasetError(path, f"expected {{'frames': [{{frame, timestamp, T_world_vehicle 4x4}}]}}: {e}") from None
+            raise DatasetError(path,
+                               f"expected {{'frames': [{{frame, timestamp, T_world_vehicle 4x4}}]}}: {e}") from None
         if len(set(frames)) != len(frames):
             raise DatasetError(path, "duplicate frame ids")
         if not torch.isfinite(poses).all():
@@ -192,7 +193,8 @@ class DatasetReader:
         img = _imread(path, cv2.IMREAD_COLOR)
         bev = self.rig.bev
         if img.shape[:2] != (bev.height, bev.width):
-            raise DatasetError(path, f"BEV image is {img.shape[1]}x{img.shape[0]} but the BEV spec is {bev.width}x{bev.height}")
+            raise DatasetError(path, f"BEV image is {img.shape[1]}x{img.shape[0]} "
+                                     f"but the BEV spec is {bev.width}x{bev.height}")
         return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
 
     def depth(self, camera: str, frame: int) -> Tensor:
@@ -222,7 +224,8 @@ class DatasetReader:
             for j, s in enumerate(slots):
                 for key in ("p1", "p2"):
                     if not 0 <= int(s[key]) < len(marks):
-                        raise DatasetError(path, f"slot {j} {key}={s[key]} is not one of the {len(marks)} marking points")
+                        raise DatasetError(path, f"slot {j} {key}={s[key]} is not one of the "
+                                                 f"{len(marks)} marking points")
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, DatasetError):
                 raise

@@ -32,7 +32,9 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
 
 
 def eval_sh(sh: Tensor, dirs: Tensor, degree: int) -> Tensor:
-    """RGB ``[N, 3]`` from coefficients ``sh[N, K, 3]`` seen along unit ``dirs[N, 3]``: basis . sh + 0.5, clamped at 0."""
+    """RGB ``[N, 3]`` from coefficients ``sh[N, K, 3]`` seen along unit ``dirs[N, 3]``.
+
+    Computes basis . sh + 0.5, clamped at 0."""
     basis = sh_basis(dirs, degree)
     rgb = torch.einsum("nk,nkc->nc", basis, sh[:, : basis.shape[-1]])
     return torch.clamp_min(rgb + 0.5, 0.0)
