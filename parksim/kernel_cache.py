@@ -69,4 +69,4 @@ def configure() -> None:
     others = sorted((d for d in home.glob(f"{_PREFIX}*") if d != current), key=_mtime)
     for old in others[:-KEEP_OTHERS]:   # the newest few stay: another process may still be running that source
         shutil.rmtree(old, ignore_errors=True)
-    numba.config.CACHE_DIR = str(current)
+    numba.config.CACHE_DIR = str(current)  # type: ignore[attr-defined]  # numba.config sets its names at import

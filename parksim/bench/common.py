@@ -46,7 +46,7 @@ def set_threads(n: int) -> None:
     import numba
     import torch
 
-    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]  # set at import
     torch.set_num_threads(n)
 
 
@@ -160,8 +160,9 @@ def write_result(out_dir: Path, name: str, meta: dict[str, Any], data: dict[str,
     """Write ``name.json`` (meta + data), ``name.md`` (title, metadata, ``body``) and ``name.png`` (``figure``)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     meta = {**meta, "load_end": load_average()}
-    png = out_dir / f"{name}.png" if figure is not None else None
-    if png is not None:
+    png: Path | None = None
+    if figure is not None:
+        png = out_dir / f"{name}.png"
         figure(png)
     js = out_dir / f"{name}.json"
     js.write_text(json.dumps(_jsonable({"meta": meta, **data}), indent=1) + "\n")

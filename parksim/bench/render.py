@@ -91,12 +91,9 @@ def knob_grid(args: argparse.Namespace, n_inputs: int, sh_degree: int, camera_na
 
 def _inputs(args: argparse.Namespace) -> tuple[list[Input], Rig, Path]:
     """The scenes to compare (bundles first), the rig they share and the dataset giving pose and ground truth."""
-    inputs = []
-    for path in args.bundle:
-        b = load_bundle(path)
-        inputs.append(Input(f"{path.name} ({len(b.scene):,} G)", b.scene, b))
-    dataset = args.dataset or (Path(inputs[0].bundle.meta["dataset"]) if inputs and "dataset" in inputs[0].bundle.meta
-                               else None)
+    bundles = [load_bundle(path) for path in args.bundle]
+    inputs = [Input(f"{path.name} ({len(b.scene):,} G)", b.scene, b) for path, b in zip(args.bundle, bundles)]
+    dataset = args.dataset or (Path(bundles[0].meta["dataset"]) if bundles and "dataset" in bundles[0].meta else None)
     if dataset is None:
         raise ValueError("bench render: give --dataset (pose, rig and ground truth), or a --bundle trained from one")
     if not inputs:

@@ -24,6 +24,8 @@ OPENCV_FISHEYE, RADIAL_POLY, PINHOLE = 0, 1, 2
 FX, FY, CX, CY, THETA_MAX, RHO_MAX, Q0, K1 = range(8)
 COS_MAX, SIN_MAX = K1 + 4, K1 + 5
 """Slots of the float64 ``lens`` array; k1..k4 sit at ``K1 .. K1 + 3``, then cos and sin of ``theta_max``."""
+LensSlots = np.ndarray | tuple[float, ...]
+"""The ``lens`` array, or a tuple of its leading slots (which ``_project_loop`` reads into registers)."""
 
 AXIS_EPS, TINY, ADAPTIVE, THETA_MIN, BLEND, REL_SIZE, BLUR, LO, HI, EXTENT, WIDTH, HEIGHT, NEAR, FAR, CULL = range(15)
 """Slots of the float64 ``opts`` array: dtype limits, adaptive rule, 2D blur and clamps, image size, culling
@@ -75,7 +77,7 @@ def _atan2(r: float, z: float) -> float:
 
 
 @numba.njit(inline="always", cache=True)
-def _rho(model: int, lens: np.ndarray, t: float) -> tuple[float, float]:
+def _rho(model: int, lens: LensSlots, t: float) -> tuple[float, float]:
     """``rho(theta)`` and ``d rho / d theta`` of the lens model ``model``."""
     k1, k2, k3, k4 = lens[K1], lens[K1 + 1], lens[K1 + 2], lens[K1 + 3]
     if model == OPENCV_FISHEYE:
@@ -105,7 +107,7 @@ def _direction(x: float, y: float, z: float, n2: float) -> tuple[float, float, f
 
 
 @numba.njit(inline="always", cache=True)
-def _project(model: int, lens: np.ndarray, axis_eps: float, tiny: float, x: float, y: float, z: float
+def _project(model: int, lens: LensSlots, axis_eps: float, tiny: float, x: float, y: float, z: float
              ) -> tuple[float, float, float, float, float, float, float, float]:
     """``(u, v)`` of a camera-frame point and the Jacobian rows ``du/dp, dv/dp``, as ``CameraModel.project``.
 

@@ -140,10 +140,12 @@ def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_ca
     bg = background.to(torch.float32).numpy()
 
     def finish(k: int, rgb: np.ndarray, depth_sum: np.ndarray, t_final: np.ndarray) -> tuple[Tensor, Tensor, Tensor]:
-        out = tuple(torch.empty(shape, dtype=torch.float32) for shape in (rgb.shape, t_final.shape, t_final.shape))
+        image, alpha, depth = (torch.empty(shape, dtype=torch.float32)
+                               for shape in (rgb.shape, t_final.shape, t_final.shape))
         finish_image(rgb, depth_sum, t_final, lenses[k].numpy(), bg, np.float32(_MIN_ALPHA_FOR_DEPTH),
-                     *(x.numpy() for x in out))
-        return tuple(x.to(scene.means.dtype) for x in out)
+                     image.numpy(), alpha.numpy(), depth.numpy())
+        dtype = scene.means.dtype
+        return image.to(dtype), alpha.to(dtype), depth.to(dtype)
 
     return composite_many(images, finish)
 

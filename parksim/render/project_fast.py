@@ -114,10 +114,15 @@ def _np(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy())
 
 
-def _sets(cfg: FusedUTConfig) -> tuple[np.ndarray, ...]:
+_SigmaSets = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""z7, wm7, wc7, z19, wm19, wc19: the kernels' sigma-point arguments, in their order."""
+
+
+def _sets(cfg: FusedUTConfig) -> _SigmaSets:
     """Both sigma-point sets as float64 arrays: z7, wm7, wc7, z19, wm19, wc19."""
-    return tuple(np.ascontiguousarray(t.detach().to(torch.float64).numpy())
-                 for t in (*cfg.unscented, *cfg.fifth_degree))
+    z7, wm7, wc7, z19, wm19, wc19 = (np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+                                     for t in (*cfg.unscented, *cfg.fifth_degree))
+    return z7, wm7, wc7, z19, wm19, wc19
 
 
 class _ProjectUT(torch.autograd.Function):
@@ -148,6 +153,7 @@ class _ProjectUT(torch.autograd.Function):
                  g_cov2d: Tensor | None, g_depths: Tensor | None, _g_radii: Tensor | None,
                  _g_valid: Tensor | None) -> tuple[Tensor | None, ...]:
         means, quats, log_scales, rot = ctx.saved_tensors
+        sets: _SigmaSets
         index, lens, opts, sets, model = ctx.state
         m, m_np = len(index), _np(means)
 

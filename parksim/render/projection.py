@@ -209,7 +209,7 @@ def _ewa(mu: Tensor, L: Tensor, camera: CameraModel) -> tuple[Tensor, Tensor]:
     for k in range(3):
         e = torch.zeros_like(mu)
         e[:, k] = 1.0
-        uv, col = torch.func.jvp(f, (mu,), (e,))
+        uv, col = torch.func.jvp(f, (mu,), (e,))[:2]   # (outputs, tangents); torch types it as maybe 3 long
         cols.append(col)
     JL = torch.stack(cols, dim=-1) @ L
     S = JL @ JL.transpose(-1, -2)

@@ -95,10 +95,10 @@ def max_weights(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tens
     Same inputs and compositing as ``rasterize(..., backend="numba")``; culled Gaussians get 0.
     """
     m = means2d.shape[0]
-    inputs = [_f32(t) for t in (means2d, conics, torch.zeros(m, 3), opacities, depths)]
     best = np.zeros((numba.get_num_threads(), m), np.float32)
     with keep_torch_threads():
-        bins = bin_gaussians(*inputs, width, height)
+        bins = bin_gaussians(_f32(means2d), _f32(conics), np.zeros((m, 3), np.float32), _f32(opacities),
+                             _f32(depths), width, height)
         _max_weights(bins.offsets, bins.gauss_ids, bins.packed, bins.tiles_x, _heaviest_first(bins), width, height,
                      np.float32(t_min), best)
     return torch.from_numpy(best.max(axis=0, initial=0.0))

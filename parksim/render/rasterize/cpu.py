@@ -84,13 +84,13 @@ Finish = Callable[[int, np.ndarray, np.ndarray, np.ndarray], R]
 """``finish(k, rgb, depth sum, final T)``: turns image ``k``'s compositor output into what the caller keeps."""
 
 
-def _composite_alone(k: int, image: Image, t_min: float, finish: Finish) -> R:
+def _composite_alone(k: int, image: Image, t_min: float, finish: Finish[R]) -> R:
     """Image ``k`` composited on this thread only (numba's thread count is per thread), then ``finish``-ed."""
     numba.set_num_threads(1)
     return finish(k, *composite(*image, t_min, thread_scratch())[2:5])
 
 
-def composite_many(images: Sequence[Image], finish: Finish, t_min: float = T_MIN) -> list[R]:
+def composite_many(images: Sequence[Image], finish: Finish[R], t_min: float = T_MIN) -> list[R]:
     """``finish(k, rgb, depth sum, final T)`` of several images, each composited whole on one of numba's threads.
 
     Binning, depth sorting and bucketing are serial per image, so on a few cores giving each image its own
@@ -114,14 +114,13 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, depths: Tensor,
                 width: int, height: int, bg: Tensor | None, t_min: float) -> tuple[Tensor, Tensor, Tensor]:
-        inputs = [_f32(t) for t in (means2d, conics, colors, opacities, depths)]
-        bins, order, rgb, depth, t_final, last = composite(*inputs, width, height, t_min)
+        bins, order, rgb, depth, t_final, last = composite(_f32(means2d), _f32(conics), _f32(colors),
+                                                           _f32(opacities), _f32(depths), width, height, t_min)
         bg32 = np.zeros(3, np.float32) if bg is None else _f32(bg).reshape(3)
         ctx.state = (bins, order, t_final, last, bg32, width, height)
         ctx.like = [(t.dtype, t.device) for t in (means2d, conics, colors, opacities, depths)]
         out_rgb = torch.from_numpy(rgb + t_final[..., None] * bg32 if bg is not None else rgb)
-        like = {"dtype": means2d.dtype, "device": means2d.device}
-        return out_rgb.to(**like), torch.from_numpy(1.0 - t_final).to(**like), torch.from_numpy(depth).to(**like)
+        return out_rgb.to(means2d), torch.from_numpy(1.0 - t_final).to(means2d), torch.from_numpy(depth).to(means2d)
 
     @staticmethod
     def backward(ctx: Any, g_rgb: Tensor, g_alpha: Tensor, g_depth: Tensor) -> tuple[Tensor | None, ...]:
