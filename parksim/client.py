@@ -72,11 +72,12 @@ def encode_npz(frames: Sequence[Frame], meta: dict[str, Any], batch: bool) -> by
         put(f"images/{name}", [f.images[name] for f in frames])
     for name in first.depth:
         put(f"depth/{name}", [f.depth[name] for f in frames])
-    if first.bev is not None:
-        put("bev", [f.bev for f in frames])
+    bevs = [f.bev for f in frames if f.bev is not None]
+    if bevs:   # the frames of one request all have a BEV or none has
+        put("bev", bevs)
     arrays["meta"] = np.array(json.dumps({**meta, "batch": len(frames) if batch else None}))
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez(buf, allow_pickle=False, **arrays)   # plain arrays only, as readers load them without pickle
     return buf.getvalue()
 
 

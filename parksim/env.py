@@ -75,12 +75,13 @@ class ParkingEnv(gym.Env):
         self.pos_tol, self.yaw_tol, self.vehicle = pos_tol, yaw_tol, vehicle
         self.render_mode = render_mode
         self.obstacles = Obstacles(self.world_map.get("obstacles", []))
-        self.action_space = spaces.Box(np.array([-vehicle.max_decel, -vehicle.max_steer], np.float32),
-                                       np.array([vehicle.max_accel, vehicle.max_steer], np.float32))
+        self.action_space: spaces.Box = spaces.Box(np.array([-vehicle.max_decel, -vehicle.max_steer], np.float32),
+                                                   np.array([vehicle.max_accel, vehicle.max_steer], np.float32))
         self.observation_space = spaces.Dict(self._image_spaces(info) | {"state": self._state_space(info)})
         self.state = VehicleState(0.0, 0.0, 0.0)
         self.slot: dict[str, Any] = free_slots(self.world_map)[0]
-        self.steps, self._cost, self._background = 0, 0.0, None
+        self.steps, self._cost = 0, 0.0
+        self._background: np.ndarray | None = None
 
     def _state_space(self, info: dict[str, Any]) -> spaces.Box:
         """``[x, y, yaw, v, steer, target_x, target_y, target_yaw]``, bounded by the scene and the car's limits."""
@@ -89,9 +90,9 @@ class ParkingEnv(gym.Env):
         hi = [x1 + 5, y1 + 5, math.pi, p.max_speed, p.max_steer, x1 + 5, y1 + 5, math.pi]
         return spaces.Box(np.array(lo, np.float32), np.array(hi, np.float32))
 
-    def _image_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Box]:
+    def _image_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Space[Any]]:
         """uint8 HxWx3 boxes for the requested views at ``scale`` (the BEV has the rig's BEV size)."""
-        out = {}
+        out: dict[str, spaces.Space[Any]] = {}
         for name in self.cameras:
             c = info["rig"]["cameras"][name]["intrinsics"]
             shape = (round(c["height"] * self.scale), round(c["width"] * self.scale), 3)
@@ -174,11 +175,11 @@ class ParkingEnv(gym.Env):
     def _observation(self) -> dict[str, np.ndarray]:
         s = self.state
         tx, ty, tyaw = self.target_pose()
-        obs = {"state": np.array([s.x, s.y, s.yaw, s.v, s.steer, tx, ty, tyaw], np.float32)}
+        obs: dict[str, np.ndarray] = {"state": np.array([s.x, s.y, s.yaw, s.v, s.steer, tx, ty, tyaw], np.float32)}
         if self.cameras or self.bev:
             frame = self.sim.render(s.pose, self.cameras, self.bev, self.scale)
             obs.update(frame.images)
-            if self.bev:
+            if frame.bev is not None:   # exactly when self.bev asked for one
                 obs["bev"] = frame.bev
         return obs
 

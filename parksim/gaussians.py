@@ -162,9 +162,10 @@ class GaussianScene:
         vertex = ply["vertex"]
         present = {p.name for p in vertex.properties}
         n_rest = sum(1 for p in present if p.startswith("f_rest_"))
-        if n_rest % 3 or _degree_of(n_rest // 3 + 1) is None:
-            raise PLYFormatError(f"{path}: {n_rest} f_rest_* fields do not match an SH degree 0..{_MAX_SH_DEGREE}")
         k = n_rest // 3 + 1
+        degree = None if n_rest % 3 else _degree_of(k)
+        if degree is None:
+            raise PLYFormatError(f"{path}: {n_rest} f_rest_* fields do not match an SH degree 0..{_MAX_SH_DEGREE}")
         needed = [name for name in _ply_names(k) if not name.startswith("n")]
         missing = [name for name in needed if name not in present]
         if missing:
@@ -184,7 +185,7 @@ class GaussianScene:
                                 if n_rest else np.zeros((n, 0))).reshape(n, 3, k - 1).transpose(1, 2)
         scene = cls(stack(["x", "y", "z"]), stack([f"rot_{i}" for i in range(4)]),
                     stack([f"scale_{i}" for i in range(3)]), torch.from_numpy(cols["opacity"]),
-                    torch.cat([dc[:, None, :], rest], dim=1), _degree_of(k))
+                    torch.cat([dc[:, None, :], rest], dim=1), degree)
         return scene.to(dtype)
 
 

@@ -66,10 +66,9 @@ def _rot_z(yaw: Tensor) -> Tensor:
 def pose_from_xy_yaw(x: float | Tensor, y: float | Tensor, yaw: float | Tensor,
                      dtype: torch.dtype = torch.float64) -> Tensor:
     """Planner pose ``(x, y, yaw)`` -> ``T_world_vehicle`` on the ground plane."""
-    x, y, yaw = (torch.as_tensor(v, dtype=dtype) for v in (x, y, yaw))
-    x, y, yaw = torch.broadcast_tensors(x, y, yaw)
-    t = torch.stack([x, y, torch.zeros_like(x)], dim=-1)
-    return make_transform(_rot_z(yaw), t)
+    xs, ys, yaws = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=dtype) for v in (x, y, yaw)))
+    t = torch.stack([xs, ys, torch.zeros_like(xs)], dim=-1)
+    return make_transform(_rot_z(yaws), t)
 
 
 def xy_yaw_from_pose(T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -134,7 +133,9 @@ def as_pose(pose: Tensor | Sequence[float], dtype: torch.dtype = torch.float64) 
     if not all(math.isfinite(v) for v in values):
         raise ValueError(f"pose has non-finite values: {values}")
     if len(values) == 3:
-        return pose_from_xy_yaw(*values, dtype=dtype)
+        x, y, yaw = values
+        return pose_from_xy_yaw(x, y, yaw, dtype=dtype)
     if len(values) == 6:
-        return pose_from_xyz_rpy(*values, dtype=dtype)
+        x, y, z, roll, pitch, yaw = values
+        return pose_from_xyz_rpy(x, y, z, roll, pitch, yaw, dtype=dtype)
     raise ValueError(f"pose must be a 4x4 matrix, (x, y, yaw) or (x, y, z, roll, pitch, yaw); got {len(values)} values")

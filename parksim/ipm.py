@@ -157,14 +157,13 @@ class IPM:
         self._check(images)
         if self._gather_applies(images):
             return self._gather(images)
-        out = None
-        for name in self.cameras:
-            x, batched, squeeze_c = _as_nchw(images[name])
+        planes = {name: _as_nchw(images[name]) for name in self.cameras}
+        first, batched, squeeze_c = planes[self.cameras[0]]   # the images share one layout
+        out = first.new_zeros(first.shape[0], first.shape[1], self.spec.height * self.spec.width)
+        for name, (x, _, _) in planes.items():
             rows, grid, weight = self._taps[name]
             grid = grid.to(x.dtype).expand(x.shape[0], -1, -1, -1)
             sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
-            if out is None:
-                out = x.new_zeros(x.shape[0], x.shape[1], self.spec.height * self.spec.width)
             out = out.index_add(2, rows, sampled * weight.to(x.dtype))
         return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
 

@@ -177,8 +177,8 @@ class Rig:
             if name not in T_vehicle_camera:
                 raise CalibrationError(f"no T_vehicle_camera given for camera {name!r}")
             calib = read_opencv_yaml(p)
-            model = OpenCVFisheye.from_K_D(calib["camera_matrix"], calib["dist_coeffs"],
-                                           tuple(int(v) for v in calib["resolution"].reshape(-1)), max_fov_deg)
+            width, height = (int(v) for v in calib["resolution"].reshape(-1))
+            model = OpenCVFisheye.from_K_D(calib["camera_matrix"], calib["dist_coeffs"], (width, height), max_fov_deg)
             cams[name] = RigCamera(name, model, T_vehicle_camera[name])
         return cls(cams, bev or BEVSpec())
 

@@ -103,7 +103,10 @@ class RenderJob:
             body = encode_npz(frames, self._meta(frames[0], timings).model_dump(), self.batch)
         else:
             f = frames[0]
-            body = encode_image(f.bev if self.bev else f.images[self.cameras[0]], self.fmt, jpeg_quality)
+            image = f.bev if self.bev else f.images[self.cameras[0]]
+            if image is None:
+                raise RuntimeError(f"scene {self.sim.id}: a BEV was asked for but the render holds none")
+            body = encode_image(image, self.fmt, jpeg_quality)
         timings["encode"] = time.perf_counter() - start
         return body, timings, frames
 

@@ -149,8 +149,8 @@ def load_sample_cameras(sample_dir: str | Path, max_fov_deg: float = 190.0) -> d
         K_new[1, 1] *= scale[1]
         K_new[0, 2] += shift[0]
         K_new[1, 2] += shift[1]
-        size = tuple(int(v) for v in d["resolution"].reshape(-1))
-        model = OpenCVFisheye.from_K_D(K, d["dist_coeffs"], size, max_fov_deg)
+        width, height = (int(v) for v in d["resolution"].reshape(-1))
+        model = OpenCVFisheye.from_K_D(K, d["dist_coeffs"], (width, height), max_fov_deg)
         H = torch.as_tensor(d["project_matrix"], dtype=torch.float64).reshape(3, 3)
         cams[stem] = SampleCamera(stem, model, K_new, H)
     return cams

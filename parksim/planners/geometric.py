@@ -96,7 +96,7 @@ def dubins_paths(start: tuple[float, float, float], goal: tuple[float, float, fl
             continue
         path = _sample(s, word, lengths, radius, step)
         end = path[-1]
-        if math.hypot(end[0] - g[0], end[1] - g[1]) < 0.05 and abs(wrap_angle(end[2] - g[2])) < 0.02:
+        if math.hypot(end[0] - g[0], end[1] - g[1]) < 0.05 and abs(float(wrap_angle(end[2] - g[2]))) < 0.02:
             paths.append(path)
     return sorted(paths, key=len)
 
