@@ -11,13 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
 from parksim.render import bev_ipm
 
-from .detectors import DecodeOptions, Detections, SlotLabels
+from .detectors import DecodeOptions, Detections, DMPRDetector, SlotLabels
 from .detectors.evaluate import Evaluator, MatchOptions, Metrics
 from .evaluate import Response, render_view
 
@@ -73,7 +73,7 @@ def rendered_bevs(scene: GaussianScene, reader: DatasetReader, frames: list[int]
 
 
 @torch.no_grad()
-def score_detector(model: nn.Module, bevs: list[TestBEV], decode: DecodeOptions = DecodeOptions(),
+def score_detector(model: DMPRDetector, bevs: list[TestBEV], decode: DecodeOptions = DecodeOptions(),
                    match: MatchOptions = MatchOptions(), sweep_threshold: float = 0.05) -> DetectionScore:
     """Detect on every BEV and score against its labels."""
     model.eval()

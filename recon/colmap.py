@@ -147,7 +147,7 @@ def import_model(model_dir: str | Path, data_dir: str | Path, overwrite: bool = 
     reader = DatasetReader(data_dir, validate=False)
     if writer.layout.poses.is_file():
         poses = vehicle_poses(model, reader)
-        report = pose_errors(poses, reader)
+        report: dict[str, Any] = pose_errors(poses, reader)
         s, R, t = align_similarity(np.stack([poses[f][:3, 3] for f in sorted(poses)]),
                                    np.stack([reader.pose(f).numpy()[:3, 3] for f in sorted(poses)]))
         xyz = (s * xyz.astype(np.float64) @ R.T + t).astype(np.float32)

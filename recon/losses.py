@@ -6,11 +6,15 @@ valid pixels keeps black lens corners and the ego car from pulling Gaussians tow
 
 from __future__ import annotations
 
+import functools
+import operator
+from collections.abc import Iterable
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["masked_mean", "ssim_map", "l1_loss", "dssim_loss", "photometric_loss", "SSIM_WINDOW"]
+__all__ = ["masked_mean", "ssim_map", "l1_loss", "dssim_loss", "photometric_loss", "sum_terms", "SSIM_WINDOW"]
 
 SSIM_WINDOW = 11
 """Gaussian window of SSIM (the 3DGS and kornia default), sigma 1.5."""
@@ -63,3 +67,8 @@ def dssim_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
 def photometric_loss(pred: Tensor, gt: Tensor, mask: Tensor, ssim_lambda: float) -> Tensor:
     """The paper's L_rgb: (1 - lambda) L1 + lambda D-SSIM, lambda = 0.2 by default."""
     return (1.0 - ssim_lambda) * l1_loss(pred, gt, mask) + ssim_lambda * dssim_loss(pred, gt, mask)
+
+
+def sum_terms(terms: Iterable[Tensor]) -> Tensor:
+    """Sum of one or more loss tensors, added left to right as ``sum()`` would, but typed ``Tensor`` (not ``| int``)."""
+    return functools.reduce(operator.add, terms)

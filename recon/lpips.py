@@ -32,7 +32,8 @@ class LPIPSError(ValueError):
 
 
 def _features(spec: list) -> nn.Sequential:
-    layers, channels = [], 3
+    layers: list[nn.Module] = []
+    channels = 3
     for item in spec:
         if item == "R":
             layers.append(nn.ReLU())

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torch import nn
 
 from parksim.bundle import load
 from parksim.data import DatasetReader
@@ -24,7 +23,7 @@ from parksim.fileio import write_json
 from .bev_detection import DetectionScore, TestBEV, gt_bevs, rendered_bevs, score_detector
 from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
-from .detectors import DecodeOptions, Detections
+from .detectors import DecodeOptions, Detections, DMPRDetector
 from .evaluate import evaluate_views, summarize
 from .paper_tables import DETECTOR_TITLES, tables_markdown
 from .reconstruct import CONFIG_FILE
@@ -76,7 +75,7 @@ def _annotated(item: TestBEV, det: Detections, title: str) -> np.ndarray:
     return img
 
 
-def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, nn.Module],
+def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, DMPRDetector],
                   out_dir: Path, backend: str = "auto", panel_frames: int = 3,
                   decode: DecodeOptions = DecodeOptions()) -> dict[str, Any]:
     """Score each ``(bundle folder, label or None)`` on the dataset's test frames; returns what ``tables.json`` holds.

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 from tqdm import tqdm
 
 from parksim.data import DatasetReader
@@ -27,9 +27,10 @@ from parksim.render import render
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
+from .detectors import DMPRDetector
 from .evaluate import evaluate_views
 from .init import initial_scene
-from .losses import photometric_loss
+from .losses import photometric_loss, sum_terms
 from .masks import scene_mask
 from .metrics import psnr
 from .metrics_log import METRICS_FILE, append_record, cut_back
@@ -63,7 +64,7 @@ class Trainer:
     """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them."""
 
     def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
-                 log: Callable[[str], None] = print, detector: nn.Module | None = None) -> None:
+                 log: Callable[[str], None] = print, detector: DMPRDetector | None = None) -> None:
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
         self.rig = reader.rig
         self.generator = torch.Generator().manual_seed(config.run.seed)
@@ -81,7 +82,7 @@ class Trainer:
         self._images: dict[tuple[int, str], Tensor] = {}
         self.slot_step = self._slot_step(detector)
 
-    def _slot_step(self, detector: nn.Module | None) -> SlotAwareStep | None:
+    def _slot_step(self, detector: DMPRDetector | None) -> SlotAwareStep | None:
         """The slot-aware step when phase 2 is on: iterations > 0 and a detector where the variant needs one."""
         sa = self.cfg.slot_aware
         if sa.iterations == 0:
@@ -214,8 +215,8 @@ class Trainer:
         slot: dict[str, Any] = {}
         if self.step < ph.iterations:
             batch = self._render_batch(sh_degree)
-            rgb = sum(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
-                      for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
+            rgb = sum_terms(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
+                            for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
             objective = rgb
         else:
             batch, terms = self._slot_batch(sh_degree)
@@ -276,5 +277,6 @@ class Trainer:
         state = load_checkpoint(checkpoint_path(out_dir))
         trainer = cls(reader, config, out_dir, log)
         trainer.resume(state)
+        assert trainer.params is not None
         trainer.log(f"resumed at iteration {trainer.step} with {len(trainer.params)} Gaussians")
         return trainer

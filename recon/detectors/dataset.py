@@ -130,7 +130,7 @@ def photometric(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     out = cv2.LUT(np.ascontiguousarray(image), table.reshape(256, 1, 3))
     noise = np.empty_like(out)
     cv2.setRNGSeed(int(rng.integers(2**31)))
-    cv2.randn(noise, 0.0, float(sigma))
+    cv2.randn(noise, 0.0, float(sigma))  # type: ignore[call-overload]  # the stubs miss OpenCV's scalar mean/stddev
     return np.clip(out + noise, 0.0, 1.0)
 
 

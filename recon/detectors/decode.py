@@ -110,7 +110,7 @@ def _pair_ok(points: list[MarkingPoint], i: int, j: int, m_per_px: float, opts: 
 
 def select_slots(points: list[MarkingPoint], candidates: list[tuple[float, int, int]]) -> list[Slot]:
     """Greedy by score: each point opens at most one slot and closes at most one; an L point bounds only one."""
-    used_as = {1: set(), 2: set()}
+    used_as: dict[int, set[int]] = {1: set(), 2: set()}
     used_l: set[int] = set()
     slots = []
     for score, i, j in sorted(candidates, key=lambda t: -t[0]):

@@ -13,6 +13,7 @@ import torch
 
 from .dataset import iter_items
 from .decode import DecodeOptions, Detections
+from .dmpr import DMPRDetector
 from .labels_ps2 import SlotLabels
 
 __all__ = ["MatchOptions", "match_points", "match_slots", "Metrics", "summarize", "Evaluator", "evaluate_folder"]
@@ -139,7 +140,7 @@ class Evaluator:
                 for name, t in (("points", self.points), ("slots", self.slots))}
 
 
-def evaluate_folder(model: torch.nn.Module, folder: str | Path, split: str = "test",
+def evaluate_folder(model: DMPRDetector, folder: str | Path, split: str = "test",
                     decode: DecodeOptions = DecodeOptions(), match: MatchOptions = MatchOptions(),
                     sweep_threshold: float = 0.05) -> dict:
     """Detect on every BEV of ``folder``'s ``split``; metrics, images and the mean inference time per BEV (ms)."""

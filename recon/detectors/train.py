@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..losses import sum_terms
 from .backbone import PointMaps
 from .dataset import TrainingSet
 from .dmpr import DMPRDetector
@@ -95,7 +96,7 @@ def _init_seconds(init: str | None) -> float:
     return float(json.loads(meta.read_text()).get("total_train_seconds", 0.0)) if meta.is_file() else 0.0
 
 
-def save_checkpoint(model: nn.Module, path: Path, extra: dict) -> None:
+def save_checkpoint(model: DMPRDetector, path: Path, extra: dict) -> None:
     """Write ``model`` (kind, constructor config, weights) and ``extra`` metadata atomically."""
     tmp = path.with_suffix(".tmp")
     torch.save({"kind": model.kind, "config": model.config(), "state_dict": model.state_dict(), **extra}, tmp)
@@ -131,7 +132,7 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
         if isinstance(model, GCNDetector):
             losses["edges"] = edge_loss(model.edge_logits(extras, batch["nodes"], batch["mask"]), batch["edges"],
                                         batch["mask"])
-        loss = sum(losses.values())
+        loss = sum_terms(losses.values())
         optim.zero_grad(set_to_none=True)
         loss.backward()
         optim.step()

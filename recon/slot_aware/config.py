@@ -7,12 +7,14 @@ Values not given by the paper (marked "ParkSim" below): ``lambda_edge``, the ali
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
-from torch import nn
 
 from .variants import Variant
+
+if TYPE_CHECKING:
+    from ..detectors import DMPRDetector
 
 __all__ = ["SlotAwareConfig", "DetectorRef", "DetectorError"]
 
@@ -38,7 +40,7 @@ class DetectorRef(BaseModel):
                                 f"(train one with `parksim detector train {self.kind} ...`)")
         return path
 
-    def load(self) -> nn.Module:
+    def load(self) -> DMPRDetector:
         """The detector in eval mode; its checkpoint must hold a detector of ``kind``."""
         from ..detectors import load_detector
 

@@ -16,6 +16,8 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
+from ..losses import sum_terms
+
 __all__ = ["align_loss", "weighted_l1", "ipm_loss", "cam_loss", "total_loss"]
 
 _EPS = 1e-12
@@ -50,7 +52,7 @@ def ipm_loss(pred_bev: Tensor, gt_bev: Tensor, weights: Tensor) -> Tensor:
 def cam_loss(preds: Mapping[str, Tensor], gts: Mapping[str, Tensor], weights: Mapping[str, Tensor]) -> Tensor:
     """L_cam: the back-projected weights on the fisheye views, normalised over all cameras together."""
     sums = [_weighted_sums(preds[c], gts[c], weights[c]) for c in weights]
-    return sum(n for n, _ in sums) / sum(d for _, d in sums).clamp_min(_EPS)
+    return sum_terms(n for n, _ in sums) / sum_terms(d for _, d in sums).clamp_min(_EPS)
 
 
 def total_loss(rgb: Tensor, align: Tensor, ipm: Tensor, cam: Tensor, lambda_align: float = 0.001,

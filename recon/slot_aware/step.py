@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -23,7 +24,7 @@ from parksim.render import bev_ipm, render
 from parksim.rig import Rig
 
 from ..detectors import DMPRDetector, GCNDetector
-from ..losses import photometric_loss
+from ..losses import photometric_loss, sum_terms
 from .config import SlotAwareConfig
 from .losses import align_loss, cam_loss, ipm_loss, total_loss
 from .variants import spec_of
@@ -32,6 +33,7 @@ from .weights import edge_weights, mix, shape_confidence, upsample
 __all__ = ["SlotFrame", "SlotAwareTerms", "SlotAwareStep", "freeze", "frame_has_slots"]
 
 Response = Callable[[Tensor, str], Tensor]
+_Net = TypeVar("_Net", bound=nn.Module)
 
 @dataclass
 class SlotFrame:
@@ -59,7 +61,7 @@ class SlotAwareTerms:
                 "align_loss": float(self.align.detach()), "ipm_loss": float(self.ipm.detach()),
                 "cam_loss": float(self.cam.detach()), "slot_skipped": self.skipped}
 
-def freeze(detector: nn.Module) -> nn.Module:
+def freeze(detector: _Net) -> _Net:
     """Eval mode, no parameter gradients: the detector guides, it is never trained here."""
     detector.eval()
     detector.requires_grad_(False)
@@ -90,8 +92,8 @@ class SlotAwareStep:
         preds = render(scene, self.rig, pose, cameras=self.ipm.cameras, backend=self.backend).images
         if self.response is not None:
             preds = {c: self.response(img, c) for c, img in preds.items()}
-        rgb = sum(photometric_loss(_nchw(preds[c]), _nchw(frame.images[c]), frame.masks[c][None, None],
-                                   self.ssim_lambda) for c in preds) / len(preds)
+        rgb = sum_terms(photometric_loss(_nchw(preds[c]), _nchw(frame.images[c]), frame.masks[c][None, None],
+                                         self.ssim_lambda) for c in preds) / len(preds)
         zero = rgb.new_zeros(())
         if self.spec.uses_detector and not frame.has_slots:
             return SlotAwareTerms(rgb, rgb, zero, zero, zero, preds, skipped=True)
@@ -131,11 +133,12 @@ class SlotAwareStep:
         assert isinstance(self.detector, GCNDetector)
         points, scores = self.detector.edges(_nchw(bev))[0]
         c = self.cfg
-        return edge_weights(points, scores, c.edge_top_k, tuple(bev.shape[:2]), c.edge_sigma, c.edge_samples)
+        return edge_weights(points, scores, c.edge_top_k, (bev.shape[0], bev.shape[1]), c.edge_sigma, c.edge_samples)
 
     def _slot_weights(self, w_teacher: Tensor, w_student: Tensor, gt_bev: Tensor, pred_bev: Tensor) -> Tensor:
         """W_mix' = upsample(W_mix) + lambda_edge W_edge on the IPM's ground area, ``[H, W]``."""
-        weights = upsample(mix(w_teacher, w_student, self._share(self.cfg.alpha)), tuple(gt_bev.shape[:2]))[0, 0]
+        size = (gt_bev.shape[0], gt_bev.shape[1])
+        weights = upsample(mix(w_teacher, w_student, self._share(self.cfg.alpha)), size)[0, 0]
         if isinstance(self.detector, GCNDetector) and self.cfg.lambda_edge > 0 and self.cfg.edge_top_k > 0:
             edges = mix(self._edges(gt_bev), self._edges(pred_bev), self._share(self.cfg.beta))
             weights = weights + self.cfg.lambda_edge * edges
