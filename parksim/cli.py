@@ -8,9 +8,11 @@ and planners that only render never import training code.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import sys
 
+from .commands.parser import Parser, UsageError
 from .omp_env import prefer_sleeping_omp_threads
 
 prefer_sleeping_omp_threads()   # before any subcommand imports torch
@@ -18,9 +20,14 @@ prefer_sleeping_omp_threads()   # before any subcommand imports torch
 # Order is the order shown in --help.
 COMMANDS = ["demo", "synth", "reconstruct", "eval", "colmap", "detector", "render", "ipm", "serve", "bench", "compact"]
 
+_OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)
+_OS_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.ENAMETOOLONG, errno.ENOTEMPTY,
+              errno.EADDRINUSE, errno.EADDRNOTAVAIL}
+"""OSErrors that mean bad input or a full, read-only, forbidden or busy place: reported, not a traceback."""
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="parksim",
         description="ParkSim: reconstruct parking garages from surround-view fisheye cameras "
                     "with 3D Gaussian Splatting and render them at any ego pose.")
@@ -34,13 +41,45 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _pydantic_errors(error: ValueError) -> str | None:
+    """A pydantic ``ValidationError`` as ``field: message; ...`` (its own text spans lines and links docs)."""
+    pydantic = sys.modules.get("pydantic")
+    if pydantic is None or not isinstance(error, pydantic.ValidationError):
+        return None
+    return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'value'}: {e['msg']}" for e in error.errors())
+
+
+def describe(error: BaseException) -> str | None:
+    """The one line to print for an expected error (bad input, a missing, full, read-only or busy resource, no
+    memory for the size asked), or None for anything else: a bug, whose traceback must show."""
+    if isinstance(error, _OS_ERRORS) or (isinstance(error, OSError) and error.errno in _OS_ERRNOS):
+        text = str(error)
+        if error.strerror:
+            names = " -> ".join(str(n) for n in (error.filename, error.filename2) if n is not None)
+            text = f"{names}: {error.strerror}" if names else error.strerror
+    elif isinstance(error, MemoryError):
+        text = f"out of memory: {error}" if str(error) else "out of memory"
+    elif isinstance(error, ValueError):
+        text = _pydantic_errors(error) or str(error)
+    else:
+        return None
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run one ``parksim`` command; every expected error is one line on stderr and exit status 2."""
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as e:
+        print(e, file=sys.stderr)
+        return 2
     try:
         return int(args._run(args) or 0)
-    except (ValueError, FileNotFoundError) as e:
-        # Bad input: one clear line, no traceback, non-zero exit.
-        print(f"parksim {args.command}: error: {e}", file=sys.stderr)
+    except Exception as e:
+        line = describe(e)
+        if line is None:
+            raise
+        print(f"parksim {args.command}: error: {line}", file=sys.stderr)
         return 2
 
 

@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
 import shutil
+import uuid
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NoReturn
 
-__all__ = ["atomic_write", "write_json", "atomic_directory", "remove_stale_temps"]
+__all__ = ["atomic_write", "write_json", "atomic_directory", "atomic_files", "existing_ancestor",
+           "remove_stale_temps"]
 
 _TEMP_NAME = re.compile(r"\..+\.tmp\d+(\.[^.]*)?")
 """``atomic_write``'s temp names: ``.{name}.tmp{pid}{suffix}``."""
 
 
-def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+def atomic_write(path: str | Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temp path next to ``path``, then rename: the file appears whole or not at all."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -23,8 +26,21 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     try:
         write(tmp)
         os.replace(tmp, path)
+    except Exception as e:
+        _raise_write_error(e, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _raise_write_error(error: Exception, path: Path) -> NoReturn:
+    """Re-raise a failed write of ``path`` so that it names ``path``: a full disk as ENOSPC (torch's zip writer
+    reports one as a RuntimeError, numpy as an OSError without errno), an OSError without a file name with it."""
+    has_errno = isinstance(error, OSError) and bool(error.errno)
+    if not has_errno and os.statvfs(existing_ancestor(path)).f_bavail == 0:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path)) from error
+    if isinstance(error, OSError) and has_errno and error.filename is None:
+        raise OSError(error.errno, error.strerror, str(path)) from error
+    raise error
 
 
 def remove_stale_temps(folder: str | Path) -> list[Path]:
@@ -43,8 +59,9 @@ def write_json(path: str | Path, data: Any) -> None:
     atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=1) + "\n"))
 
 
-def atomic_directory(path: str | Path, write: Callable[[Path], None]) -> None:
-    """Fill a temp folder next to ``path`` with ``write(tmp)``, then swap it in: the folder appears complete or not at all.
+def atomic_directory(path: str | Path, write: Callable[[Path], object]) -> None:
+    """Fill a temp folder next to ``path`` with ``write(tmp)``, then swap it in: the folder appears complete or not
+    at all.
 
     An existing ``path`` is replaced (the caller decides whether that is allowed).
     """
@@ -59,3 +76,38 @@ def atomic_directory(path: str | Path, write: Callable[[Path], None]) -> None:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(old, ignore_errors=True)
+
+
+def atomic_files(folder: str | Path, write: Callable[[Path], object]) -> None:
+    """Fill a temp folder with ``write(tmp)``, then move what it made into ``folder`` (made if missing): a failed
+    ``write`` creates nothing, and no file in ``folder`` is ever half-written.
+
+    Unlike :func:`atomic_directory`, other files already in ``folder`` stay (an output folder may hold other
+    work); an entry of the same name is replaced, a subfolder as a whole.
+    """
+    folder = Path(folder)
+    tmp = existing_ancestor(folder) / f".{folder.name}.tmp-{uuid.uuid4().hex[:12]}"
+    tmp.mkdir()   # not tempfile.mkdtemp: its mode 0700 would make the output private
+    try:
+        write(tmp)
+        if not folder.exists():
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(tmp, folder)
+            return
+        for item in sorted(tmp.iterdir()):
+            target = folder / item.name
+            if target.is_dir() and not target.is_symlink():
+                os.replace(target, tmp / f".replaced-{item.name}")
+            os.replace(item, target)
+    except Exception as e:
+        _raise_write_error(e, folder)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def existing_ancestor(path: str | Path) -> Path:
+    """The closest existing folder above ``path``: where a new ``path`` (and any missing parents) would go."""
+    parent = Path(path).absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    return parent

@@ -1,12 +1,14 @@
 """The ``parksim`` command line: every subcommand explains itself, bad input is one clear line, render works."""
 
+import argparse
+import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from parksim.cli import COMMANDS, main
+from parksim.cli import COMMANDS, build_parser, main
 from sim_fixtures import make_bundle
 
 
@@ -21,6 +23,35 @@ def test_every_subcommand_has_help():
         assert name in top.stdout
         sub = run_cli(name, "--help")
         assert sub.returncode == 0 and "usage: parksim " + name in sub.stdout, name
+
+
+def _parsers(parser: argparse.ArgumentParser):
+    """``parser`` and every subcommand parser below it."""
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _parsers(sub)
+
+
+def test_help_states_each_default_once_and_never_none():
+    """No "(default: None)" noise, no default stated by hand and again by the formatter, every parser described."""
+    for parser in _parsers(build_parser()):
+        assert parser.description, f"{parser.prog} has no description"
+        formatter = parser._get_formatter()
+        for action in parser._actions:
+            if action.help in (None, argparse.SUPPRESS):
+                continue
+            text = formatter._expand_help(action)
+            assert "(default: None)" not in text and "(default: [])" not in text, (parser.prog, text)
+            assert text.lower().count("default") <= 1, (parser.prog, text)
+
+
+def test_help_adds_a_meaningful_default():
+    help_text = {p.prog: p.format_help() for p in _parsers(build_parser())}
+    assert "in (0, 4] (default: 1.0)" in " ".join(help_text["parksim render"].split())
+    assert "(default: 8000)" in help_text["parksim serve"]
+    assert "(default: 0.002)" in help_text["parksim detector train"]
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +75,7 @@ def test_render_writes_views_bev_and_depth(bundle, tmp_path, capsys):
     (["--pose", "1,nan,0"], "non-finite"),
     (["--pose", "a,b,c"], "comma-separated numbers"),
     (["--pose", "1,2,0", "--cameras", "roof"], "unknown camera(s) ['roof']"),
-    (["--pose", "1,2,0", "--scale", "0"], "--scale must be in (0, 4]"),
+    (["--pose", "1,2,0", "--scale", "0"], "argument --scale: must be a finite number in (0, 4], got 0"),
 ])
 def test_render_bad_input_is_one_line_and_exit_2(bundle, tmp_path, capsys, argv, message):
     assert main(["render", str(bundle), *argv, "-o", str(tmp_path / "x")]) == 2
@@ -56,3 +87,27 @@ def test_render_bad_input_is_one_line_and_exit_2(bundle, tmp_path, capsys, argv,
 def test_missing_bundle_is_a_clear_error(tmp_path, capsys):
     assert main(["render", str(tmp_path / "nope"), "--pose", "0,0,0", "-o", str(tmp_path / "x")]) == 2
     assert "bundle folder not found" in capsys.readouterr().err
+
+
+def test_eval_report_appears_whole_and_a_rerun_replaces_it(bundle, tmp_path, capsys):
+    """The report goes through a temp folder: other files in OUTPUT stay, renders/ is replaced as a whole, and
+    OUTPUT gets the usual permissions (not a temp folder's 0700)."""
+    data = tmp_path / "data"
+    assert main(["synth", "tiny", "-o", str(data), "--frames", "2", "--points", "300", "--quiet"]) == 0
+    out = tmp_path / "report"
+    assert main(["eval", str(bundle), str(data), "-o", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["eval.json", "eval.md", "renders"]
+    assert out.stat().st_mode & 0o777 == 0o777 & ~_umask()
+    (out / "notes.txt").write_text("mine")
+    (out / "renders" / "stale.png").write_bytes(b"old")
+    assert main(["eval", str(bundle), str(data), "-o", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["eval.json", "eval.md", "notes.txt", "renders"]
+    assert not (out / "renders" / "stale.png").exists() and len(list((out / "renders").iterdir())) == 4
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    assert "report: " in capsys.readouterr().out
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -68,9 +68,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="a scene bundle; repeat to compare several (e.g. compaction levels); the first is the "
                         "reference")
     r.add_argument("--dataset", type=Path,
-                   help="dataset giving pose, rig and ground truth (default: the first bundle's; with no bundle a "
-                        "garage-like scene of --gaussians is built from its points; default data/scene1_320, or "
-                        "synth tiny under --quick)")
+                   help="dataset giving pose, rig and ground truth (default: the first bundle's, else "
+                        "data/scene1_320, or synth tiny under --quick; with no bundle a garage-like scene of "
+                        "--gaussians is built from its points)")
     _option(r, "--gaussians", 200_000, 500, "Gaussians of the built scene when no --bundle is given", int)
     r.add_argument("--frame", type=int, help="dataset frame whose pose is rendered (default: first test frame)")
     _option(r, "--scales", [1.0, 0.75, 0.5, 0.25], [1.0, 0.5], "resolution scales of the fisheye views", _floats)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import integer, number
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``compact`` (cheap: no heavy imports)."""
@@ -17,22 +19,22 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "the SH bands whose view-dependent colour change stays below --sh-tolerance (the scene's SH "
                     "degree drops when no Gaussian needs it); and store per cell the Gaussians seen from it "
                     "(visibility.npz; at most --cell-budget of them, the most visible from the cell first), so "
-                    "that serving renders only those at poses in that cell. OUTPUT is written only once complete.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "that serving renders only those at poses in that cell. OUTPUT is written only once complete.")
     p.add_argument("bundle", type=Path, help="scene bundle folder (parksim reconstruct output) with a map.json")
     p.add_argument("-o", "--output", type=Path, required=True, help="compact bundle folder to write")
-    p.add_argument("--budget", type=float, default=1.0,
+    p.add_argument("--budget", type=number(0, open_low=True), default=1.0,
                    help="Gaussians to keep: a fraction of the scene when <= 1 (0.5 = half), else a count (40000)")
-    p.add_argument("--cell-budget", type=float, default=1.0,
+    p.add_argument("--cell-budget", type=number(0, open_low=True), default=1.0,
                    help="Gaussians each visibility cell serves, as a fraction (<= 1) or count (> 1) of the kept ones: "
                         "the most visible from the cell's poses first")
-    p.add_argument("--min-weight", type=float, default=0.0,
-                   help="a Gaussian (and a cell's visibility entry) needs a blending weight above this somewhere")
-    p.add_argument("--sh-tolerance", type=float, default=0.01,
+    p.add_argument("--min-weight", type=number(0, 1, open_high=True), default=0.0,
+                   help="a Gaussian (and a cell's visibility entry) needs a blending weight above this somewhere; "
+                        "in [0, 1)")
+    p.add_argument("--sh-tolerance", type=number(0), default=0.01,
                    help="largest colour change (0-1 scale, any direction) allowed when dropping a Gaussian's SH bands")
-    p.add_argument("--cell", type=float, default=4.0, help="visibility cell size (m)")
-    p.add_argument("--poses-per-cell", type=int, default=16, help="drivable poses measured per cell")
-    p.add_argument("--margin", type=float, default=1.0,
+    p.add_argument("--cell", type=number(0, open_low=True), default=4.0, help="visibility cell size (m)")
+    p.add_argument("--poses-per-cell", type=integer(1), default=16, help="drivable poses measured per cell")
+    p.add_argument("--margin", type=number(0), default=1.0,
                    help="a cell's poses are drawn from the cell grown by this (m), to cover its borders")
     p.add_argument("--no-visibility", action="store_true", help="do not store per-cell visibility")
     p.add_argument("--seed", type=int, default=0, help="pose sampling seed")
@@ -46,11 +48,9 @@ def run(args: argparse.Namespace) -> int:
     from ..bundle import load, save
     from ..compact import CompactOptions, compact_bundle
     from ..fileio import atomic_directory
+    from .outputs import check_output_folder
 
-    if args.output.exists() and not args.overwrite:
-        raise ValueError(f"{args.output} exists; pass --overwrite to replace it")
-    if args.output.exists() and not args.output.is_dir():
-        raise ValueError(f"{args.output} is a file, not a bundle folder")
+    check_output_folder(args.output, overwrite=args.overwrite)
     options = CompactOptions(args.budget, args.cell_budget, args.min_weight, args.sh_tolerance, args.cell,
                              args.poses_per_cell, args.margin, args.seed, not args.no_visibility)
     bundle = load(args.bundle)

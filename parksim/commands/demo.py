@@ -9,6 +9,7 @@ import argparse
 from pathlib import Path
 
 from ..assets import SAMPLE_DIR
+from .argtypes import integer
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -17,12 +18,12 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
         description="Run ParkSim's main job on built-in data and write everything to OUTPUT: build a small "
                     "synthetic garage (parksim synth), reconstruct it (parksim reconstruct), score it on the "
                     "test frames (parksim eval), render it at a new pose with its BEV (parksim render), and "
-                    "stitch the real surround-view sample into a BEV (parksim ipm).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "stitch the real surround-view sample into a BEV (parksim ipm).")
     p.add_argument("--sample", type=Path, default=SAMPLE_DIR,
                    help="a surround-view sample folder (images/ + yaml/); the default is the one shipped with ParkSim")
     p.add_argument("--config", default="demo", help="training config: a packaged preset name or a YAML path")
-    p.add_argument("--frames", type=int, default=30, help="frames of the synthetic garage")
+    p.add_argument("--frames", type=integer(2), default=30,
+                   help="frames of the synthetic garage (every 10th, from the first, is a test frame)")
     p.add_argument("-o", "--output", type=Path, default=Path("out/demo"), help="output folder")
     return p
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import integer, number
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``detector train`` and ``detector eval`` (cheap: no heavy imports)."""
@@ -15,7 +17,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "(plus an attentional graph scoring ordered point pairs).")
     sub = p.add_subparsers(dest="detector_command", metavar="ACTION")
     sub.required = True
-    d = "(default: %(default)s)"
 
     t = sub.add_parser("train", help="train a detector on the train frames of dataset folders",
                        description="Train on the ground-truth BEVs (ipm/) and slot labels (labels/) of the train "
@@ -24,13 +25,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     t.add_argument("arch", choices=["dmpr", "gcn"], help="detector architecture")
     t.add_argument("data", nargs="+", type=Path, help="dataset or ps2.0 folders")
     t.add_argument("-o", "--output", type=Path, required=True, help="output folder (model.pt, train.json)")
-    t.add_argument("--width", type=float, default=0.25, help=f"channel width multiplier {d}")
-    t.add_argument("--input-size", type=int, default=256, help=f"network input side in px, multiple of 32 {d}")
-    t.add_argument("--steps", type=int, default=1200, help=f"optimiser steps {d}")
-    t.add_argument("--batch-size", type=int, default=8, help=f"BEVs per step {d}")
-    t.add_argument("--lr", type=float, default=2e-3, help=f"peak learning rate (one-cycle) {d}")
-    t.add_argument("--seed", type=int, default=0, help=f"seed for weights, sampling and augmentation {d}")
-    t.add_argument("--threads", type=int, default=2, help=f"torch CPU threads {d}")
+    t.add_argument("--width", type=number(0, open_low=True), default=0.25, help="channel width multiplier")
+    t.add_argument("--input-size", type=integer(32), default=256, help="network input side in px, multiple of 32")
+    t.add_argument("--steps", type=integer(1), default=1200, help="optimiser steps")
+    t.add_argument("--batch-size", type=integer(1), default=8, help="BEVs per step")
+    t.add_argument("--lr", type=number(0, open_low=True), default=2e-3, help="peak learning rate (one-cycle)")
+    t.add_argument("--seed", type=int, default=0, help="seed for weights, sampling and augmentation")
+    t.add_argument("--threads", type=integer(1), default=2, help="torch CPU threads")
     t.add_argument("--init", type=Path, help="start from a trained detector's matching weights (GCN from DMPR)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -42,19 +43,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     e.add_argument("model", type=Path, help="trained detector (folder or model.pt)")
     e.add_argument("data", type=Path, help="dataset or ps2.0 folder")
     e.add_argument("--split", choices=["test", "train", "all"], default="test",
-                   help=f"frames of a dataset folder (ps2.0 folders: all images) {d}")
-    e.add_argument("--threshold", type=float, default=0.5, help=f"marking-point confidence threshold {d}")
-    e.add_argument("--distance-px", type=float, default=10.0, help=f"point distance at DMPR-PS scale {d}")
-    e.add_argument("--direction-deg", type=float, default=30.0, help=f"point direction tolerance {d}")
-    e.add_argument("--slot-angle-deg", type=float, default=10.0, help=f"slot angle tolerance {d}")
+                   help="frames of a dataset folder (ps2.0 folders: all images)")
+    e.add_argument("--threshold", type=number(0, 1, open_low=True, open_high=True), default=0.5,
+                   help="marking-point confidence threshold, in (0, 1)")
+    e.add_argument("--distance-px", type=number(0, open_low=True), default=10.0,
+                   help="point distance at DMPR-PS scale")
+    e.add_argument("--direction-deg", type=number(0, 180, open_low=True), default=30.0,
+                   help="point direction tolerance")
+    e.add_argument("--slot-angle-deg", type=number(0, 180, open_low=True), default=10.0, help="slot angle tolerance")
     e.add_argument("--json", type=Path, help="also write the metrics here")
-    e.add_argument("--threads", type=int, default=2, help=f"torch CPU threads {d}")
+    e.add_argument("--threads", type=integer(1), default=2, help="torch CPU threads")
     return p
 
 
 def _train(args: argparse.Namespace) -> int:
     from recon.detectors.train import TrainOptions, train_detector
 
+    from .outputs import check_output_folder
+
+    check_output_folder(args.output)
     opts = TrainOptions(arch=args.arch, width=args.width, input_size=args.input_size, steps=args.steps,
                         batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads,
                         init=str(args.init) if args.init else None)
@@ -64,16 +71,17 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
-    import json
-
     import torch
 
     from recon.detectors import DecodeOptions, load_detector
     from recon.detectors.evaluate import MatchOptions, evaluate_folder
 
+    from ..fileio import write_json
+    from .outputs import check_output_file
+
+    if args.json:
+        check_output_file(args.json)
     torch.set_num_threads(args.threads)
-    if not 0.0 < args.threshold < 1.0:
-        raise ValueError(f"--threshold must be in (0, 1), got {args.threshold}")
     model = load_detector(args.model)
     match = MatchOptions(args.distance_px, args.direction_deg, args.slot_angle_deg)
     result = evaluate_folder(model, args.data, args.split, DecodeOptions(threshold=args.threshold), match)
@@ -83,7 +91,7 @@ def _eval(args: argparse.Namespace) -> int:
         print(f"  {name:6s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  AP {m['ap']:.3f}  "
               f"(TP {m['tp']}, FP {m['fp']}, labelled {m['labelled']})")
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1))
+        write_json(args.json, result)
     return 0
 
 

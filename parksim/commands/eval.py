@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import integer, number
+
 
 def _run_arg(text: str) -> tuple[Path, str | None]:
     """``DIR`` or ``LABEL=DIR``."""
@@ -32,16 +34,17 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "paper's tables in OUTPUT/tables.md (+ tables.json): novel-view PSNR/SSIM, each detector's "
                     "marking-point and slot precision/recall on the ground-truth BEVs (IPM of the dataset's "
                     "images: the GT- rows) and on each scene's rendered BEVs, the ablation table, and "
-                    "panel_<detector>.png (ground-truth vs rendered BEVs; labels green, detections red).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "panel_<detector>.png (ground-truth vs rendered BEVs; labels green, detections red). Files "
+                    "already in OUTPUT stay; the new ones appear only once all are written.")
     p.add_argument("scenes", nargs="+", type=_run_arg, metavar="SCENE",
                    help="scene bundle folder (parksim reconstruct output), or LABEL=FOLDER to name its table row")
     p.add_argument("data", type=Path, help="dataset directory with the test frames and slot labels")
     p.add_argument("-o", "--output", type=Path, help="report folder (default: SCENE/eval; required for several)")
     p.add_argument("--detector", action="append", type=parse_detector, default=[], metavar="KIND=PATH",
                    help="trained detector (dmpr=detectors/dmpr, gcn=detectors/gcn/model.pt); repeat for both")
-    p.add_argument("--threshold", type=float, default=0.5, help="detectors' marking-point confidence threshold")
-    p.add_argument("--panel-frames", type=int, default=3, help="test frames shown in each detection panel")
+    p.add_argument("--threshold", type=number(0, 1, open_low=True, open_high=True), default=0.5,
+                   help="detectors' marking-point confidence threshold, in (0, 1)")
+    p.add_argument("--panel-frames", type=integer(0), default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
     p.add_argument("--lpips-backbone", type=Path, help="torchvision AlexNet/VGG16 ImageNet state dict (.pth)")
@@ -54,15 +57,15 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
     from recon.paper_eval import evaluate_runs
     from recon.slot_aware import DetectorRef
 
+    from ..fileio import atomic_files
+
     if args.lpips_backbone is not None:
         raise ValueError("LPIPS is computed for a single SCENE without --detector")
     if len({kind for kind, _ in args.detector}) != len(args.detector):
         raise ValueError("give each detector kind once")
-    if not 0.0 < args.threshold < 1.0:
-        raise ValueError(f"--threshold must be in (0, 1), got {args.threshold}")
     detectors = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in args.detector}
-    evaluate_runs(args.scenes, args.data, detectors, out, args.backend, args.panel_frames,
-                  DecodeOptions(threshold=args.threshold))
+    atomic_files(out, lambda tmp: evaluate_runs(args.scenes, args.data, detectors, tmp, args.backend,
+                                                args.panel_frames, DecodeOptions(threshold=args.threshold)))
     print((out / "tables.md").read_text(), end="")
     print(f"report: {out}/tables.json, panels: " + (", ".join(f"{out}/panel_{k}.png" for k in detectors) or "none"))
     return 0
@@ -70,12 +73,17 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and print the table(s)."""
+    from .outputs import check_output_folder
+
     if len(args.scenes) > 1 and args.output is None:
         raise ValueError("several SCENEs need -o/--output")
     out = args.output or args.scenes[0][0] / "eval"
+    check_output_folder(out)
     if args.detector or len(args.scenes) > 1:
         return _tables(args, out)
     from recon.evaluate import evaluate_bundle
+
+    from ..fileio import atomic_files
 
     lpips = None
     if (args.lpips_backbone is None) != (args.lpips_weights is None):
@@ -85,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
         lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights)
     scene = args.scenes[0][0]
-    evaluate_bundle(scene, args.data, out, args.backend, lpips)
+    atomic_files(out, lambda tmp: evaluate_bundle(scene, args.data, tmp, args.backend, lpips))
     print((out / "eval.md").read_text(), end="")
     print(f"report: {out}/eval.json, side-by-sides: {out}/renders/")
     return 0

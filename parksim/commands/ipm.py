@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .argtypes import number
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(
@@ -13,15 +15,14 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "differentiable IPM. Either give a folder in the surround-view sample's layout "
                     "(yaml/{front,back,left,right}.yaml with ground homographies, images/*.png): the "
                     "camera poses are recovered from the homographies; or give --rig and one --image "
-                    "per camera.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "per camera.")
     p.add_argument("source", nargs="?", type=Path,
                    help="surround-view sample folder (omit when using --rig)")
     p.add_argument("-o", "--output", type=Path, required=True, help="BEV PNG to write")
     p.add_argument("--rig", type=Path, help="rig file (JSON/YAML) instead of a sample folder")
     p.add_argument("--image", action="append", default=[], metavar="CAMERA=PATH",
                    help="with --rig: the image of one camera (repeat for each)")
-    p.add_argument("--m-per-px", type=float, default=0.02,
+    p.add_argument("--m-per-px", type=number(0, open_low=True), default=0.02,
                    help="BEV ground sampling distance for a sample folder (the sample's own is 0.01)")
     p.add_argument("--save-rig", type=Path, help="also write the rig recovered from a sample folder")
     return p
@@ -30,6 +31,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ..imageio import read_image, write_image
     from ..ipm import IPM
+    from .outputs import check_output_file
+
+    for path in (args.output, args.save_rig):
+        if path is not None:
+            check_output_file(path)
 
     if args.rig is not None:
         from ..rig import Rig

@@ -15,8 +15,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "MCMC densification) and write a scene bundle to OUTPUT: gaussians.ply, rig.json, map.json, "
                     "bundle.json, config.yaml, metrics.jsonl/png. Checkpoints go to OUTPUT/checkpoints/; "
                     "--resume continues a killed run exactly; --from RUN continues a finished photometric run's "
-                    "checkpoint into this config's slot-aware phase (phase 1 shared by several variants).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "checkpoint into this config's slot-aware phase (phase 1 shared by several variants).")
     p.add_argument("data", type=Path, help="dataset directory (parksim synth layout)")
     p.add_argument("-o", "--output", type=Path, required=True, help="scene bundle folder, e.g. scenes/NAME")
     p.add_argument("--config", help="training config: a YAML path or a packaged preset name "
@@ -32,5 +31,8 @@ def run(args: argparse.Namespace) -> int:
     """Train (or resume) and write the bundle."""
     from recon.reconstruct import reconstruct
 
+    from .outputs import check_output_folder
+
+    check_output_folder(args.output)
     reconstruct(args.data, args.output, args.config, resume=args.resume, start_from=args.start_from)
     return 0

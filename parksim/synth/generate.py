@@ -118,7 +118,12 @@ def _write_frame(writer: DatasetWriter, renderer: SceneRenderer, ipm: IPM, weigh
 
 def generate(preset: ScenePreset, out: str | Path, overwrite: bool = False,
              progress: Callable[[int], Any] | None = None) -> Path:
-    """Write the scene of ``preset`` to ``out`` atomically; ``progress(n)`` is told of each finished frame."""
+    """Write the scene of ``preset`` to ``out`` atomically; ``progress(n)`` is told of each finished frame.
+
+    An existing ``out`` without ``overwrite`` fails before any work.
+    """
+    if Path(out).exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists (pass overwrite=True to replace it)")
     renderer = SceneRenderer(preset)
     poses, stamps = drive(renderer.garage, preset.trajectory, preset.frames)
     ipm = IPM(renderer.rig)

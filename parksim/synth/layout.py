@@ -29,6 +29,8 @@ _SLANT_LENGTH = 5.0       # length of a slanted separator line
 _BAY_GAP = 1.2            # floor between bays, where a pillar stands at the back
 _PILLAR = 0.7             # pillar side (m)
 _CAR = (4.5, 1.8, 1.45)   # length, width, height of a parked car
+MIN_LENGTH = 2 * CROSS_AISLE + _PARALLEL[0]
+"""Shortest garage (m): both cross aisles and the widest bay, so every row holds a slot."""
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,13 @@ class LayoutParams:
     broken_lights: float = 0.1
     ambient: float = 0.12
     line_width: float = 0.16
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.length) and self.length >= MIN_LENGTH):
+            raise ValueError(f"garage length must be at least {MIN_LENGTH:g} m (two {CROSS_AISLE:g} m cross aisles "
+                             f"and a bay), got {self.length:g}")
+        if self.aisles < 1:
+            raise ValueError(f"a garage needs at least one aisle, got {self.aisles}")
 
 
 def _segment(p0: np.ndarray, p1: np.ndarray, width: float, color: str) -> Paint:

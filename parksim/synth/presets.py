@@ -25,6 +25,14 @@ class ScenePreset:
     points: int = 30000
     sensor: SensorOptions = field(default_factory=SensorOptions)
 
+    def __post_init__(self) -> None:
+        sizes = {"frames": self.frames, "width": self.width, "height": self.height, "bev_px": self.bev_px,
+                 "points": self.points}
+        bad = {k: v for k, v in sizes.items() if v < 1}
+        if bad:
+            raise ValueError(f"scene preset {self.name!r}: {', '.join(f'{k} {v}' for k, v in bad.items())} "
+                             "must be at least 1")
+
 
 PRESETS: dict[str, ScenePreset] = {
     "scene1": ScenePreset("scene1", LayoutParams(seed=101, length=48.0, kinds=("perpendicular",) * 3 + ("slanted", "parallel")),
