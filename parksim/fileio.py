@@ -8,8 +8,9 @@ import os
 import re
 import shutil
 import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NoReturn
+from typing import Any, NoReturn
 
 __all__ = ["atomic_write", "write_json", "atomic_directory", "atomic_files", "existing_ancestor",
            "remove_stale_temps"]
