@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 OUT = Path("benchmarks/results")
 WORK = Path("out/bench")
@@ -34,7 +35,8 @@ def _option(p: argparse.ArgumentParser, name: str, full: Any, quick: Any, help: 
     def shown(v: Any) -> str:
         return ",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in v) if isinstance(v, list) else str(v)
 
-    p.add_argument(name, type=type, default=None, help=f"{help} (default {shown(full)}; --quick: {shown(quick)})")
+    p.add_argument(name, type=type or str, default=None,
+                   help=f"{help} (default {shown(full)}; --quick: {shown(quick)})")
     p.set_defaults(**{f"_default_{name.lstrip('-').replace('-', '_')}": (full, quick)})
 
 

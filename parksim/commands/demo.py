@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = args.output
     data, scene = out / "data", out / "scenes" / "garage"
-    steps = [
+    steps: list[tuple[str, list[str | None]]] = [
         ("synthetic garage", ["synth", "scene1", "-o", str(data), "--resolution", "320x240",
                               "--frames", str(args.frames), "--overwrite"]),
         ("reconstruct", ["reconstruct", str(data), "-o", str(scene), "--config", str(args.config)]),
@@ -57,9 +57,9 @@ def run(args: argparse.Namespace) -> int:
 
         shutil.rmtree(scene)
     for i, (what, argv) in enumerate(steps, 1):
-        argv = [_test_pose(data) if a is None else a for a in argv]
-        print(f"\n[{i}/{len(steps)}] {what}: parksim {' '.join(argv)}", flush=True)
-        rc = main(argv)
+        line = [_test_pose(data) if a is None else a for a in argv]
+        print(f"\n[{i}/{len(steps)}] {what}: parksim {' '.join(line)}", flush=True)
+        rc = main(line)
         if rc:
             return rc
     print(f"\ndone: results in {out}/ (eval/eval.md holds the metrics table).\n"

@@ -24,7 +24,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "(uint16 mm along the ray), map.json, points3d.ply, split.json (every 10th frame is test), "
                     "meta.json. The output appears only when complete (written to a temp dir, then renamed).")
     p.add_argument("preset", choices=PRESET_NAMES,
-                   help="scene1..scene4: benchmark garages (layouts, lighting, seeds differ); tiny: 12 frames at 160x120 for tests")
+                   help="scene1..scene4: benchmark garages (layouts, lighting, seeds differ); "
+                        "tiny: 12 frames at 160x120 for tests")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="output dataset directory (must not exist unless --overwrite)")
     p.add_argument("--frames", type=integer(1), help="number of frames at 10 Hz (preset default: 100; tiny: 12)")

@@ -72,7 +72,8 @@ class DatasetWriter:
     def rig(self, rig: Rig) -> None:
         rig.save(self.layout.rig)
 
-    def poses(self, poses: np.ndarray, timestamps: Sequence[float], frames: Sequence[int] | None = None) -> None:
+    def poses(self, poses: np.ndarray, timestamps: Sequence[float] | np.ndarray,
+              frames: Sequence[int] | None = None) -> None:
         """``poses[N, 4, 4]`` T_world_vehicle with their timestamps (s); frame ids default to 0..N-1."""
         frames = list(range(len(poses))) if frames is None else list(frames)
         if not len(frames) == len(poses) == len(timestamps):

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -16,7 +17,7 @@ from .labels import frame_labels
 from .layout import Box, Garage, build_garage
 from .points import sample_points
 from .presets import ScenePreset
-from .raycast import TILE, SUB, BoxSet, TiledRays, trace_camera
+from .raycast import SUB, TILE, BoxSet, TiledRays, trace_camera
 from .rig import avm_rig, ego_box
 from .shading import Sensor, Shader
 from .trajectory import drive
@@ -87,8 +88,9 @@ def scene_map(garage: Garage) -> dict[str, Any]:
         a, b = garage.marks[s.p1], garage.marks[s.p2]
         d = np.array([np.cos(a.direction), np.sin(a.direction)]) * s.depth
         p1, p2 = np.array([a.x, a.y]), np.array([b.x, b.y])
+        corners = [p1.tolist(), p2.tolist(), (p2 + d).tolist(), (p1 + d).tolist()]
         slots.append({"id": j, "p1": s.p1, "p2": s.p2, "type": s.kind, "angle": s.angle_deg, "depth": s.depth,
-                      "occupied": s.occupied, "corners": [p1.tolist(), p2.tolist(), (p2 + d).tolist(), (p1 + d).tolist()]})
+                      "occupied": s.occupied, "corners": corners})
     obstacles = [_box_dict(b, "pillar") for b in garage.boxes if b.material == "pillar"]
     obstacles += [_box_dict(b, "car") for b in garage.cars]
     walls = [b for b in garage.boxes if b.material == "wall"]

@@ -11,7 +11,8 @@ see it (ray cast: not hidden behind a car or pillar); a slot only when both of i
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import torch
@@ -55,7 +56,8 @@ def frame_labels(garage: Garage, pose: np.ndarray, spec: BEVSpec, ipm_weights: M
     world = np.array([[m.x, m.y, 0.0] for m in garage.marks]).reshape(-1, 3)
     vehicle = (world - t) @ R
     uv = spec.ground_to_pixel(torch.from_numpy(vehicle[:, :2])).numpy()
-    marks, index = [], {}
+    marks: list[dict[str, Any]] = []
+    index: dict[int, int] = {}
     for i, (m, (u, v)) in enumerate(zip(garage.marks, uv)):
         if not (0 <= u <= spec.width - 1 and 0 <= v <= spec.height - 1):
             continue

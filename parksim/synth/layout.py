@@ -229,7 +229,7 @@ class _RowBuilder:
         yaw += float(self.rng.normal(0, 0.025))
         hue = self.rng.choice(np.array([[0.8, 0.8, 0.82], [0.12, 0.12, 0.13], [0.55, 0.1, 0.08], [0.15, 0.25, 0.5],
                                         [0.45, 0.46, 0.48], [0.7, 0.68, 0.6], [0.85, 0.85, 0.85]]))
-        color = tuple(float(v) for v in hue)
+        color = (float(hue[0]), float(hue[1]), float(hue[2]))
         self.g.boxes.extend(_car_boxes(float(centre[0]), float(centre[1]), yaw, color))
         self.g.cars.append(Box(float(centre[0]), float(centre[1]), 0.0, _CAR[2], _CAR[0], _CAR[1], yaw, "car", color))
 

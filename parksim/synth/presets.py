@@ -35,7 +35,8 @@ class ScenePreset:
 
 
 PRESETS: dict[str, ScenePreset] = {
-    "scene1": ScenePreset("scene1", LayoutParams(seed=101, length=48.0, kinds=("perpendicular",) * 3 + ("slanted", "parallel")),
+    "scene1": ScenePreset("scene1", LayoutParams(seed=101, length=48.0,
+                                                 kinds=("perpendicular",) * 3 + ("slanted", "parallel")),
                           TrajectoryParams("aisle", speed=2.0, start_x=5.0, weave=0.5)),
     "scene2": ScenePreset("scene2", LayoutParams(seed=202, length=56.0, kinds=("perpendicular", "slanted"),
                                                  slant_deg=45.0, yellow_fraction=0.7, occupancy=0.7,

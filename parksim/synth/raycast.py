@@ -8,8 +8,8 @@ handful of boxes instead of all of them. The kernel is numba, parallel over tile
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -18,7 +18,8 @@ from numba import njit, prange
 from ..camera import CameraModel
 from .layout import Box
 
-__all__ = ["BoxSet", "TiledRays", "Hits", "trace_camera", "trace_world", "box_id", "TILE", "SUB", "FLOOR", "CEILING", "MISS"]
+__all__ = ["BoxSet", "TiledRays", "Hits", "trace_camera", "trace_world", "box_id", "TILE", "SUB", "FLOOR", "CEILING",
+           "MISS"]
 
 TILE = 8
 """Tile side in pixels."""
@@ -39,7 +40,7 @@ class BoxSet:
     radii: np.ndarray
 
     @classmethod
-    def from_boxes(cls, boxes: Sequence[Box]) -> "BoxSet":
+    def from_boxes(cls, boxes: Sequence[Box]) -> BoxSet:
         arr = np.array([[b.cx, b.cy, (b.z0 + b.z1) / 2, b.length / 2, b.width / 2, (b.z1 - b.z0) / 2, b.yaw]
                         for b in boxes], dtype=np.float64).reshape(-1, 7)
         halves = arr[:, 3:6].copy()
@@ -83,7 +84,7 @@ class TiledRays:
     width: int
 
     @classmethod
-    def build(cls, model: CameraModel) -> "TiledRays":
+    def build(cls, model: CameraModel) -> TiledRays:
         """Unproject every sub-sample and centre through the exact lens model (full sphere)."""
         ty, tx = -(-model.height // TILE), -(-model.width // TILE)
         iy, ix = np.meshgrid(np.arange(ty * TILE), np.arange(tx * TILE), indexing="ij")
@@ -132,7 +133,7 @@ class Hits:
     points: np.ndarray
     dirs: np.ndarray
 
-    def columns(self, sl: slice) -> "Hits":
+    def columns(self, sl: slice) -> Hits:
         """The hits of a slice of each tile's rays (e.g. the sub-samples or the centres)."""
         return Hits(self.t[:, sl], self.prim[:, sl], self.face[:, sl], self.points[:, sl], self.dirs[:, sl])
 

@@ -123,7 +123,7 @@ class Shader:
             for off in (-0.8, 0.8):
                 y = int((lane + off - self.g.y_min) / res)
                 cv2.line(stain, (0, y), (w - 1, y), 0.9, int(0.35 / res))
-        stain = cv2.GaussianBlur(stain, (0, 0), 0.25 / res)
+        stain = cv2.GaussianBlur(stain, (0, 0), 0.25 / res).astype(np.float32, copy=False)
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) * res
         big = _bilinear(self.noise, (xx.ravel() / (4 * _NOISE_RES)), (yy.ravel() / (4 * _NOISE_RES)), True)
         return (0.42 * stain * (1.0 + 0.09 * big[:, 0].reshape(h, w)))[..., None]
@@ -147,7 +147,7 @@ class Shader:
                 corners = self._box_corners(b)
                 px = np.stack([corners[:, 0] / _LIGHT_RES, (corners[:, 1] - self.g.y_min) / _LIGHT_RES], 1)
                 cv2.fillPoly(mask, [np.round(px).astype(np.int32)], 1.0)
-        mask = cv2.GaussianBlur(mask, (0, 0), 2.5)
+        mask = cv2.GaussianBlur(mask, (0, 0), 2.5).astype(np.float32, copy=False)
         return (E * (1 - 0.7 * np.clip(mask, 0, 1)))[..., None]
 
     def _box_corners(self, b: int) -> np.ndarray:
