@@ -15,6 +15,8 @@ import sys
 from .commands.parser import Parser, UsageError
 from .omp_env import prefer_sleeping_omp_threads
 
+__all__ = ["COMMANDS", "build_parser", "describe", "main"]
+
 prefer_sleeping_omp_threads()   # before any subcommand imports torch
 
 # Order is the order shown in --help.

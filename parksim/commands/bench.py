@@ -13,6 +13,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+__all__ = ["add_parser", "run"]
+
 OUT = Path("benchmarks/results")
 WORK = Path("out/bench")
 

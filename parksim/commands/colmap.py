@@ -8,6 +8,8 @@ from pathlib import Path
 
 from .argtypes import integer
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``colmap sfm`` and ``colmap import`` (cheap: no heavy imports)."""

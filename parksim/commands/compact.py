@@ -7,6 +7,8 @@ from pathlib import Path
 
 from .argtypes import integer, number
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``compact`` (cheap: no heavy imports)."""

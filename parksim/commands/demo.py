@@ -11,6 +11,8 @@ from pathlib import Path
 from ..assets import SAMPLE_DIR
 from .argtypes import integer
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from .argtypes import integer, number
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``detector train`` and ``detector eval`` (cheap: no heavy imports)."""

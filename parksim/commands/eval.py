@@ -8,6 +8,8 @@ from pathlib import Path
 
 from .argtypes import integer, number
 
+__all__ = ["add_parser", "run"]
+
 
 def _run_arg(text: str) -> tuple[Path, str | None]:
     """``DIR`` or ``LABEL=DIR``."""

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from .argtypes import number
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser(

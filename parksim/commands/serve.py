@@ -8,6 +8,8 @@ import socket
 
 from .argtypes import integer, number, tcp_port
 
+__all__ = ["add_parser", "run"]
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``serve`` (cheap: no heavy imports)."""

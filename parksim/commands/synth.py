@@ -7,6 +7,8 @@ from pathlib import Path
 
 from .argtypes import integer, number, resolution
 
+__all__ = ["add_parser", "run"]
+
 PRESET_NAMES = ["scene1", "scene2", "scene3", "scene4", "tiny"]
 MAX_SIDE = 2048
 """Largest fisheye image side and BEV side (px): 2048x2048 needs about 6 GiB while ray casting (~1.4 KiB/px)."""
