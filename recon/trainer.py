@@ -61,7 +61,20 @@ class _Batch:
 
 
 class Trainer:
-    """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them."""
+    """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them.
+
+    Args:
+        reader: the dataset (rig, poses, images, split); training views are every (train frame, camera).
+        config: the validated run config (``recon.config.load_config``).
+        out_dir: the run folder; checkpoints go to ``out_dir/checkpoints``, metrics to ``out_dir/metrics.jsonl``.
+        log: one-line progress messages (``print`` by default).
+        detector: slot detector guiding the slot-aware phase (needed only when ``config.slot_aware.iterations``).
+
+    Call ``initialise()`` (or ``resume(state)`` / ``from_checkpoint``), then ``train()``. Each ``iteration()``
+    renders ``config.run.batch_size`` fisheye views of shape (H, W, 3) and returns that step's metrics record.
+    ``params.tensors`` holds the Gaussians: ``means`` (N, 3), ``quats`` (N, 4), ``log_scales`` (N, 3),
+    ``opacity_logits`` (N,), ``sh0`` (N, 1, 3) and ``shN`` (N, K - 1, 3) with K = (max SH degree + 1)^2.
+    """
 
     def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
                  log: Callable[[str], None] = print, detector: DMPRDetector | None = None) -> None:

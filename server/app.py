@@ -113,7 +113,18 @@ def _install_middleware(app: FastAPI, limit: int, metrics: Metrics) -> None:
 
 def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path],
                settings: Settings | None = None) -> FastAPI:
-    """The simulator app serving ``scenes`` (loaded now, once) under ``settings`` (default limits)."""
+    """The simulator app serving ``scenes`` (loaded now, once) under ``settings`` (default limits).
+
+    Args:
+        scenes: a folder of scene bundles (one sub-folder each, its name the scene id), a ``SceneRegistry``,
+            or ``{scene_id: Bundle or bundle folder}``.
+        settings: limits, pool size, reply budgets and API key; ``Settings()`` when None.
+
+    Returns:
+        A FastAPI app: ``GET/POST /render`` (npz of uint8 (H, W, 3) views, optional float32 (H, W) depth,
+        the (h, w, 3) BEV), ``GET /render/{view}.{png,jpg}``, ``/scenes``, ``/healthz``, ``/metrics``, the viewer
+        at ``/`` and offline OpenAPI docs at ``/docs``; run it with uvicorn (``parksim serve`` does).
+    """
     settings = settings or Settings()
     registry = _registry(scenes)
 
