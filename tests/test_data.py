@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -145,6 +146,9 @@ def test_atomic_dir_leaves_nothing_on_failure(tmp_path):
     with atomic_dir(target) as tmp:
         (tmp / "a").write_text("1")
     assert (target / "a").read_text() == "1"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert target.stat().st_mode & 0o777 == 0o777 & ~umask   # a folder like any other, not mkdtemp's 0700
     with pytest.raises(FileExistsError):
         with atomic_dir(target) as tmp:
             (tmp / "c").write_text("3")  # never runs: an existing scene is not touched
