@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import re
 import shutil
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -60,17 +61,22 @@ def write_json(path: str | Path, data: Any) -> None:
     atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=1) + "\n"))
 
 
-def atomic_directory(path: str | Path, write: Callable[[Path], object]) -> None:
-    """Fill a temp folder next to ``path`` with ``write(tmp)``, then swap it in: the folder appears complete or not
-    at all.
+@contextlib.contextmanager
+def atomic_directory(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temp folder next to ``path``; when the block ends it replaces ``path`` whole, and if the block
+    fails (or the process is killed) only a ``.{name}.tmp-*`` folder is left, never a half-written ``path``.
 
-    An existing ``path`` is replaced (the caller decides whether that is allowed).
+    ``overwrite=False`` refuses an existing ``path`` before anything is made.
     """
     path = Path(path)
-    tmp, old = (path.with_name(f".{path.name}.{kind}{os.getpid()}") for kind in ("tmp", "old"))
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists (pass overwrite to replace it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tag = uuid.uuid4().hex[:12]
+    tmp, old = path.with_name(f".{path.name}.tmp-{tag}"), path.with_name(f".{path.name}.old-{tag}")
+    tmp.mkdir()   # not tempfile.mkdtemp: its mode 0700 would make the output private to its writer
     try:
-        tmp.mkdir(parents=True)
-        write(tmp)
+        yield tmp
         if path.exists():
             os.replace(path, old)
         os.replace(tmp, path)

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from parksim.data import DatasetError, DatasetLayout, DatasetReader, DatasetWriter, atomic_dir
+from parksim.data import DatasetError, DatasetLayout, DatasetReader, DatasetWriter
+from parksim.fileio import atomic_directory
 from parksim.synth.rig import avm_rig
 from tolerances import f32_tol
 
@@ -136,23 +137,23 @@ def test_bad_poses_and_rig(dataset, tmp_path):
         DatasetReader(tmp_path / "nothing")
 
 
-def test_atomic_dir_leaves_nothing_on_failure(tmp_path):
+def test_atomic_directory_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "scene"
     with pytest.raises(RuntimeError):
-        with atomic_dir(target) as tmp:
+        with atomic_directory(target, overwrite=False) as tmp:
             (tmp / "poses.json").write_text("{}")
             raise RuntimeError("killed")
     assert not target.exists() and list(tmp_path.iterdir()) == []
-    with atomic_dir(target) as tmp:
+    with atomic_directory(target, overwrite=False) as tmp:
         (tmp / "a").write_text("1")
     assert (target / "a").read_text() == "1"
     umask = os.umask(0)
     os.umask(umask)
     assert target.stat().st_mode & 0o777 == 0o777 & ~umask   # a folder like any other, not mkdtemp's 0700
     with pytest.raises(FileExistsError):
-        with atomic_dir(target) as tmp:
+        with atomic_directory(target, overwrite=False) as tmp:
             (tmp / "c").write_text("3")  # never runs: an existing scene is not touched
     assert sorted(p.name for p in target.iterdir()) == ["a"]
-    with atomic_dir(target, overwrite=True) as tmp:
+    with atomic_directory(target) as tmp:
         (tmp / "b").write_text("2")
     assert sorted(p.name for p in target.iterdir()) == ["b"] and len(list(tmp_path.iterdir())) == 1

@@ -57,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
                              args.poses_per_cell, args.margin, args.seed, not args.no_visibility)
     bundle = load(args.bundle)
     compact = compact_bundle(bundle, options, progress=not args.quiet)
-    atomic_directory(args.output, lambda tmp: save(tmp, compact))
+    with atomic_directory(args.output) as tmp:
+        save(tmp, compact)
     r = compact.meta["compaction"]
     cells = (f", {r['cells']} visibility cells of {r['cell_gaussians_mean']:.0f} Gaussians on average"
              if "cells" in r else "")

@@ -2,7 +2,7 @@
 
 from .layout import DEPTH_SCALE, DatasetError, DatasetLayout, frame_name
 from .reader import DatasetReader
-from .writer import DatasetWriter, atomic_dir
+from .writer import DatasetWriter
 
-__all__ = ["DatasetLayout", "DatasetReader", "DatasetWriter", "DatasetError", "atomic_dir", "frame_name",
+__all__ = ["DatasetLayout", "DatasetReader", "DatasetWriter", "DatasetError", "frame_name",
            "DEPTH_SCALE"]

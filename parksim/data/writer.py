@@ -1,13 +1,10 @@
-"""Writes a dataset directory in the layout of ``parksim.data.layout``; ``atomic_dir`` makes it all-or-nothing."""
+"""Writes a dataset directory in the layout of ``parksim.data.layout`` (``fileio.atomic_directory`` around it
+makes it all-or-nothing)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import shutil
-import uuid
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,39 +14,13 @@ import numpy as np
 from ..rig import Rig
 from .layout import DEPTH_SCALE, DatasetError, DatasetLayout
 
-__all__ = ["DatasetWriter", "atomic_dir", "to_uint8"]
+__all__ = ["DatasetWriter", "to_uint8"]
 
 
 def to_uint8(image: Any) -> np.ndarray:
     """Float image in [0, 1] (numpy or torch, HxWx3) -> uint8, rounded."""
     arr = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
     return np.clip(np.rint(arr * 255.0), 0, 255).astype(np.uint8)
-
-
-@contextlib.contextmanager
-def atomic_dir(target: str | Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a fresh temp dir next to ``target``; on success rename it to ``target``, else delete it.
-
-    A killed run leaves only a ``.<name>.tmp-*`` folder, never a half-written ``target``.
-    """
-    target = Path(target)
-    if target.exists() and not overwrite:
-        raise FileExistsError(f"{target} already exists (pass overwrite to replace it)")
-    target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.parent / f".{target.name}.tmp-{uuid.uuid4().hex[:12]}"
-    tmp.mkdir()   # not tempfile.mkdtemp: its mode 0700 would make the dataset private to its writer
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if target.exists():
-        old = target.with_name(f".{target.name}.old-{os.getpid()}")
-        target.rename(old)
-        tmp.rename(target)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        tmp.rename(target)
 
 
 def _write_json(path: Path, data: Any) -> None:

@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data import DatasetWriter, atomic_dir
+from ..data import DatasetWriter
 from ..data.layout import LAYOUT_VERSION
+from ..fileio import atomic_directory
 from ..ipm import IPM
 from .labels import frame_labels
 from .layout import Box, Garage, build_garage
@@ -131,7 +132,7 @@ def generate(preset: ScenePreset, out: str | Path, overwrite: bool = False,
     ipm = IPM(renderer.rig)
     weights = {n: w.numpy() for n, w in ipm.weights.items()}
     mask = ipm.mask.numpy()
-    with atomic_dir(out, overwrite=overwrite) as tmp:
+    with atomic_directory(out, overwrite=overwrite) as tmp:
         writer = DatasetWriter(tmp)
         writer.rig(renderer.rig)
         writer.poses(poses, stamps)
