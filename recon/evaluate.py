@@ -28,7 +28,8 @@ Response = Callable[[Tensor, str], Tensor]
 def render_view(scene: GaussianScene, reader: DatasetReader, frame: int, camera: str, response: Response | None,
                 backend: str) -> Tensor:
     """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped)."""
-    image = render(scene, reader.rig, reader.pose(frame), cameras=[camera], backend=backend).images[camera]
+    image = render(scene, reader.rig, reader.view_pose(camera, frame), cameras=[camera],
+                   backend=backend).images[camera]
     return response(image, camera) if response is not None else image
 
 
@@ -70,7 +71,7 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
         if len(segments):
             depth_path = reader.layout.depth(camera, frame)
             depth = reader.depth(camera, frame) if depth_path.is_file() else None
-            slot = slot_region_mask(rig.cameras[camera], reader.pose(frame), segments, depth) & mask
+            slot = slot_region_mask(rig.cameras[camera], reader.view_pose(camera, frame), segments, depth) & mask
             if slot.any():
                 row["slot_psnr"], row["slot_ssim"] = psnr(pred, gt, slot), ssim(pred, gt, slot)
             row["slot_pixels"] = int(slot.sum())

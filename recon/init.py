@@ -34,11 +34,11 @@ def knn_mean_distance(xyz: Tensor, k: int = _KNN) -> Tensor:
 
 
 def scene_bounds(reader: DatasetReader) -> tuple[list[float], list[float]]:
-    """World box of the scene: the garage extent from map.json, else the ego path padded by 8 m, 0-3 m high."""
+    """World box of the scene: the garage extent from map.json, else the camera path padded by 8 m, 0-3 m high."""
     if reader.layout.map.is_file() and "garage" in reader.map:
         g = reader.map["garage"]
         return [g["x"][0], g["y"][0], 0.0], [g["x"][1], g["y"][1], float(g.get("height", 3.0))]
-    xy = reader.poses[:, :2, 3]
+    xy = reader.camera_centres()[:, :2]
     lo, hi = xy.min(0).values - 8.0, xy.max(0).values + 8.0
     return [float(lo[0]), float(lo[1]), 0.0], [float(hi[0]), float(hi[1]), 3.0]
 

@@ -88,7 +88,8 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
     meta = {"dataset": str(Path(data_dir).resolve()), "phase": phase, "iterations": trainer.step,
             "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
-            "recorded_path": recorded_path(reader.poses.numpy()),
+            "recorded_path": recorded_path(reader.poses.numpy()) if reader.has_vehicle_poses else None,
+            "poses": "ego" if reader.has_vehicle_poses else "camera",
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     world_map = reader.map if reader.layout.map.is_file() else None
     save(out_dir, Bundle(trainer.params.snapshot().spatially_sorted(), reader.rig, world_map, meta))

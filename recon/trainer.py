@@ -45,8 +45,7 @@ __all__ = ["Trainer", "scene_extent", "METRICS_FILE"]
 
 def scene_extent(reader: DatasetReader) -> float:
     """3DGS's scene scale: 1.1 x the largest camera-centre distance from their mean (at least 1 m)."""
-    centres = torch.stack([(pose @ cam.T_vehicle_camera)[:3, 3] for pose in reader.poses
-                           for cam in reader.rig.cameras.values()])
+    centres = reader.camera_centres()
     return max(1.0, 1.1 * float((centres - centres.mean(0)).norm(dim=1).max()))
 
 
@@ -99,6 +98,10 @@ class Trainer:
         """The slot-aware step when phase 2 is on: iterations > 0 and a detector where the variant needs one."""
         sa = self.cfg.slot_aware
         if sa.iterations == 0:
+            return None
+        if not self.reader.has_vehicle_poses:
+            self.log("slot-aware phase off: it renders all cameras at an ego pose and the dataset has per-image "
+                     "poses only")
             return None
         if detector is None and sa.detector is not None:
             detector = sa.detector.load()
@@ -187,7 +190,7 @@ class Trainer:
         batch = _Batch([], [], [], [])
         for i in picks:
             frame, camera = self.views[i]
-            pose = self.reader.pose(frame)
+            pose = self.reader.view_pose(camera, frame)
             image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend).images[camera]
             batch.preds.append(self.response(image, camera))
             batch.gts.append(self._image(frame, camera))

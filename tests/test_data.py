@@ -157,3 +157,65 @@ def test_atomic_directory_leaves_nothing_on_failure(tmp_path):
     with atomic_directory(target) as tmp:
         (tmp / "b").write_text("2")
     assert sorted(p.name for p in target.iterdir()) == ["b"] and len(list(tmp_path.iterdir())) == 1
+
+
+def test_per_image_poses_replace_or_join_the_ego_poses(dataset):
+    """A pose per image (COLMAP, nerfstudio) is read back exactly, and view_pose puts the camera there."""
+    root, src = dataset
+    rig, rng = src["rig"], np.random.default_rng(1)
+    rot = torch.linalg.qr(torch.from_numpy(rng.normal(size=(N, 4, 3, 3))))[0]
+    per_image = []
+    for f in range(N):
+        poses = {}
+        for i, c in enumerate(rig.names):
+            T = np.eye(4)
+            T[:3, :3] = rot[f, i].numpy() * np.sign(np.linalg.det(rot[f, i].numpy()))
+            T[:3, 3] = rng.normal(size=3)
+            poses[c] = T
+        per_image.append(poses)
+    layout = DatasetLayout(root)
+    for ego in (None, src["poses"]):
+        DatasetWriter(root).poses(ego, np.arange(N) / 10, camera_poses=per_image)
+        r = DatasetReader(root)
+        assert r.has_camera_poses and r.has_vehicle_poses == (ego is not None)
+        for f in range(N):
+            for c in rig.names:
+                T = r.camera_pose(c, f).numpy()
+                assert np.array_equal(T, per_image[f][c])
+                through_rig = (r.view_pose(c, f) @ rig.cameras[c].T_vehicle_camera).numpy()
+                np.testing.assert_allclose(through_rig, T, rtol=0, atol=8 * np.spacing(np.abs(T).max() + 1))
+        assert r.camera_centres().shape == (N * len(rig.names), 3)
+    with pytest.raises(DatasetError, match="per-image camera poses only") as e:
+        DatasetWriter(root).poses(None, np.arange(N) / 10, camera_poses=per_image)
+        DatasetReader(root).pose(0)
+    assert e.value.path == layout.poses
+    # Without per-image poses, camera_pose is the ego pose through the rig.
+    DatasetWriter(root).poses(src["poses"], np.arange(N) / 10)
+    r = DatasetReader(root)
+    assert not r.has_camera_poses
+    c = rig.names[0]
+    assert torch.equal(r.camera_pose(c, 1), r.pose(1) @ rig.cameras[c].T_vehicle_camera)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"frames": [{"frame": 0, "timestamp": 0.0}]}, "T_world_vehicle, T_world_camera, or both"),
+    ({"frames": [{"frame": 0, "timestamp": 0.0, "T_world_vehicle": np.eye(4).tolist()},
+                 {"frame": 1, "timestamp": 0.1}]}, "T_world_vehicle must be given for every frame or for none"),
+    ({"frames": [{"frame": 0, "timestamp": 0.0, "T_world_camera": {"front": np.eye(4).tolist()}}]},
+     "T_world_camera names cameras"),
+    ({"frames": [{"frame": 0, "timestamp": 0.0, "T_world_camera": {c: np.eye(4).tolist() for c in
+                                                                   ("front", "left", "rear", "right")}},
+                 {"frame": 1, "timestamp": 0.1, "T_world_camera": {"front": np.eye(4).tolist()}}]},
+     "same cameras"),
+])
+def test_bad_per_image_poses_are_named(dataset, bad, message):
+    root, _ = dataset
+    layout = DatasetLayout(root)
+    layout.poses.write_text(json.dumps(bad))
+    for f in range(N):
+        for c in ("front", "left", "rear", "right"):
+            if f >= len(bad["frames"]):
+                layout.image(c, f).unlink()
+    with pytest.raises(DatasetError, match=message) as e:
+        DatasetReader(root)
+    assert e.value.path == layout.poses

@@ -2,7 +2,8 @@
 
 ```
 rig.json                      Rig.save: cameras (intrinsics, T_vehicle_camera) and the BEV spec
-poses.json                    {"frames": [{"frame", "timestamp", "T_world_vehicle" (4x4)}]}
+poses.json                    {"frames": [{"frame", "timestamp", "T_world_vehicle" (4x4) and/or
+                                            "T_world_camera" ({camera: 4x4}, a pose per image)}]}
 images/<camera>/<frame>.png   uint8 RGB fisheye images
 ipm/<frame>.png               uint8 RGB ground-truth BEV (IPM of the ground-truth images), optional
 labels/<frame>.json           DMPR-PS slot labels in BEV pixels, optional

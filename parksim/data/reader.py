@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from ..geometry import invert_transform
 from ..rig import CalibrationError, Rig
 from .layout import DEPTH_SCALE, DatasetError, DatasetLayout
 
@@ -67,22 +68,47 @@ class DatasetReader:
             raise DatasetError(self.layout.rig, str(e)) from None
 
     @cached_property
-    def _pose_table(self) -> tuple[list[int], Tensor, list[float]]:
+    def _pose_table(self) -> tuple[list[int], Tensor | None, list[float], dict[str, Tensor] | None]:
+        """Frame ids, ego poses ``[N, 4, 4]`` (or None), timestamps and per-image poses ``{camera: [N, 4, 4]}``."""
         path = self.layout.poses
         data = _read_json(path)
+        expected = "{'frames': [{frame, timestamp, T_world_vehicle 4x4 and/or T_world_camera {camera: 4x4}}]}"
         try:
             entries = data["frames"]
             frames = [int(e["frame"]) for e in entries]
-            poses = torch.tensor([e["T_world_vehicle"] for e in entries], dtype=torch.float64).reshape(-1, 4, 4)
             stamps = [float(e["timestamp"]) for e in entries]
+            ego = self._pose_column(path, [e.get("T_world_vehicle") for e in entries], "T_world_vehicle")
+            per_image = [e.get("T_world_camera") for e in entries]
+            cams = None
+            if any(p is not None for p in per_image):
+                if not all(isinstance(p, dict) for p in per_image):
+                    raise DatasetError(path, "T_world_camera must be given for every frame or for none")
+                names = sorted(per_image[0])
+                if any(sorted(p) != names for p in per_image):
+                    raise DatasetError(path, "every frame's T_world_camera must name the same cameras")
+                cams = {c: self._pose_column(path, [p[c] for p in per_image], f"T_world_camera[{c!r}]")
+                        for c in names}
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
-            raise DatasetError(path,
-                               f"expected {{'frames': [{{frame, timestamp, T_world_vehicle 4x4}}]}}: {e}") from None
+            if isinstance(e, DatasetError):
+                raise
+            raise DatasetError(path, f"expected {expected}: {e}") from None
+        if ego is None and cams is None:
+            raise DatasetError(path, "frames need T_world_vehicle, T_world_camera, or both")
         if len(set(frames)) != len(frames):
             raise DatasetError(path, "duplicate frame ids")
+        return frames, ego, stamps, cams
+
+    @staticmethod
+    def _pose_column(path: Path, values: list[Any], key: str) -> Tensor | None:
+        """``[N, 4, 4]`` float64 from one pose key of every frame: all present (finite) or all absent (None)."""
+        if all(v is None for v in values):
+            return None
+        if any(v is None for v in values):
+            raise DatasetError(path, f"{key} must be given for every frame or for none")
+        poses = torch.tensor(values, dtype=torch.float64).reshape(-1, 4, 4)
         if not torch.isfinite(poses).all():
-            raise DatasetError(path, "non-finite pose values")
-        return frames, poses, stamps
+            raise DatasetError(path, f"non-finite {key} values")
+        return poses
 
     @property
     def frames(self) -> list[int]:
@@ -90,16 +116,53 @@ class DatasetReader:
         return self._pose_table[0]
 
     @property
+    def has_vehicle_poses(self) -> bool:
+        """Whether frames carry ego poses (T_world_vehicle); without them the scene renders at camera poses only."""
+        return self._pose_table[1] is not None
+
+    @property
+    def has_camera_poses(self) -> bool:
+        """Whether every image carries its own pose (T_world_camera), as COLMAP and nerfstudio give."""
+        return self._pose_table[3] is not None
+
+    @property
     def poses(self) -> Tensor:
-        """T_world_vehicle per frame, ``[N, 4, 4]`` float64."""
-        return self._pose_table[1]
+        """T_world_vehicle per frame, ``[N, 4, 4]`` float64; DatasetError when the dataset has per-image poses only."""
+        poses = self._pose_table[1]
+        if poses is None:
+            raise DatasetError(self.layout.poses, "this dataset has per-image camera poses only, no ego poses "
+                                                  "(T_world_vehicle): it renders at camera poses, not at ego poses")
+        return poses
 
     @property
     def timestamps(self) -> list[float]:
         return self._pose_table[2]
 
     def pose(self, frame: int) -> Tensor:
+        """T_world_vehicle of one frame (see ``poses``)."""
         return self.poses[self._index(frame)]
+
+    def camera_pose(self, camera: str, frame: int) -> Tensor:
+        """T_world_camera of one image: its own pose when the dataset has per-image poses, else ego pose x rig."""
+        cams = self._pose_table[3]
+        if cams is not None:
+            if camera not in cams:
+                raise DatasetError(self.layout.poses, f"no per-image pose for camera {camera!r}")
+            return cams[camera][self._index(frame)]
+        return self.pose(frame) @ self.rig.cameras[camera].T_vehicle_camera
+
+    def view_pose(self, camera: str, frame: int) -> Tensor:
+        """The T_world_vehicle at which ``render(..., cameras=[camera])`` puts the camera at ``camera_pose``.
+
+        Equal to ``pose(frame)`` for rig datasets; per-image poses are carried through the camera's extrinsics.
+        """
+        if self._pose_table[3] is None:
+            return self.pose(frame)
+        return self.camera_pose(camera, frame) @ invert_transform(self.rig.cameras[camera].T_vehicle_camera)
+
+    def camera_centres(self) -> Tensor:
+        """``[N * C, 3]`` world positions of every image's camera centre (frame-major)."""
+        return torch.stack([self.camera_pose(c, f)[:3, 3] for f in self.frames for c in self.rig.names])
 
     @cached_property
     def split(self) -> dict[str, list[int]]:
@@ -236,6 +299,10 @@ class DatasetReader:
     def validate(self, deep: bool = False) -> None:
         """Check the layout: rig, poses, one image per camera and frame, no strays; ``deep`` decodes all files."""
         rig, frames = self.rig, self.frames
+        cams = self._pose_table[3]
+        if cams is not None and sorted(cams) != sorted(rig.names):
+            raise DatasetError(self.layout.poses, f"T_world_camera names cameras {sorted(cams)} "
+                                                  f"but the rig has {sorted(rig.names)}")
         for camera in rig.names:
             folder = self.layout.image_dir(camera)
             if not folder.is_dir():

@@ -44,15 +44,31 @@ class DatasetWriter:
     def rig(self, rig: Rig) -> None:
         rig.save(self.layout.rig)
 
-    def poses(self, poses: np.ndarray, timestamps: Sequence[float] | np.ndarray,
-              frames: Sequence[int] | None = None) -> None:
-        """``poses[N, 4, 4]`` T_world_vehicle with their timestamps (s); frame ids default to 0..N-1."""
-        frames = list(range(len(poses))) if frames is None else list(frames)
-        if not len(frames) == len(poses) == len(timestamps):
-            raise ValueError(f"{len(poses)} poses, {len(timestamps)} timestamps and {len(frames)} frame ids")
-        _write_json(self.layout.poses, {"frames": [
-            {"frame": int(f), "timestamp": float(t), "T_world_vehicle": np.asarray(T, np.float64).tolist()}
-            for f, t, T in zip(frames, timestamps, poses)]})
+    def poses(self, poses: np.ndarray | None, timestamps: Sequence[float] | np.ndarray,
+              frames: Sequence[int] | None = None,
+              camera_poses: Sequence[Mapping[str, np.ndarray]] | None = None) -> None:
+        """Per-frame ego poses ``poses[N, 4, 4]`` (T_world_vehicle) and/or per-image ``camera_poses[N]``
+        (``{camera: T_world_camera}``), with their timestamps (s); frame ids default to 0..N-1."""
+        if poses is None and camera_poses is None:
+            raise ValueError("a dataset needs ego poses, per-image camera poses, or both")
+        n = len(timestamps)
+        frames = list(range(n)) if frames is None else list(frames)
+        sizes = {"timestamps": n, "frame ids": len(frames)}
+        if poses is not None:
+            sizes["poses"] = len(poses)
+        if camera_poses is not None:
+            sizes["camera poses"] = len(camera_poses)
+        if len(set(sizes.values())) != 1:
+            raise ValueError(", ".join(f"{v} {k}" for k, v in sizes.items()) + ": expected one per frame")
+        entries = []
+        for i, (f, t) in enumerate(zip(frames, timestamps)):
+            entry: dict[str, Any] = {"frame": int(f), "timestamp": float(t)}
+            if poses is not None:
+                entry["T_world_vehicle"] = np.asarray(poses[i], np.float64).tolist()
+            if camera_poses is not None:
+                entry["T_world_camera"] = {c: np.asarray(T, np.float64).tolist() for c, T in camera_poses[i].items()}
+            entries.append(entry)
+        _write_json(self.layout.poses, {"frames": entries})
 
     def image(self, camera: str, frame: int, image: Any) -> None:
         """Float RGB [0, 1] HxWx3 -> uint8 PNG."""
