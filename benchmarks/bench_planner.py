@@ -2,7 +2,7 @@
 
 Each episode: a seeded random start on the aisle (either direction), the planner picks the free
 slot with the shortest collision-free forward path, then drives it in closed loop through the env
-API (state only: no images are rendered, so the scene's Gaussians do not matter here).
+API (privileged state only: world pose, no images are rendered, so the scene's Gaussians do not matter here).
 Writes benchmarks/RESULTS_planner.md.
 """
 
@@ -19,7 +19,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from parksim.env import ParkingEnv  # noqa: E402
+import gymnasium as gym  # noqa: E402
+
+import parksim.env  # noqa: E402, F401  (registers ParkSim-v0)
 from parksim.planners import run_episode  # noqa: E402
 from sim_fixtures import make_bundle  # noqa: E402
 
@@ -31,8 +33,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "RESULTS_planner.md")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        env = ParkingEnv(bundle=make_bundle(Path(tmp) / args.preset, preset=args.preset, n=500), cameras=[],
-                         max_steps=500)
+        env = gym.make("ParkSim-v0", bundle=make_bundle(Path(tmp) / args.preset, preset=args.preset, n=500),
+                       cameras=[], privileged=True, max_episode_steps=500)
         start = time.perf_counter()
         results = [run_episode(env, seed) for seed in range(args.episodes)]
         elapsed = time.perf_counter() - start

@@ -1,11 +1,14 @@
 """``ParkingEnv`` (gymnasium, registered as ``ParkSim-v0``): park the ego car into a free slot of a scene.
 
-Frames come from the scene bundle in-process (``bundle=``) or from ``parksim serve`` (``server=``);
-both give the same uint8 images for the same pose. The ego is a kinematic bicycle
-(``parksim.vehicle``) driven by ``[acceleration m/s^2, steering angle rad]`` at 10 Hz. The target is
-a free slot of the scene's slot map; the car is parked when its body centre is within
-``pos_tol`` of the slot centre, its heading within ``yaw_tol`` of the slot axis (either way) and
-it has stopped. Touching a pillar, parked car or wall ends the episode.
+Frames come from the scene bundle in-process (``bundle=``), from ``parksim serve`` (``server=``) or from a
+ready frame source shared by several envs (``sim=``); all give the same uint8 images for the same pose.
+The ego is a kinematic bicycle (``parksim.vehicle``) stepped at 10 Hz by a normalised action in
+``[-1, 1]^2`` (``to_controls``). By default the observation holds no world pose: the ego's speed and
+steering, and the target slot in the ego frame; ``privileged=True`` adds the world pose. The car is
+parked when its body centre is within ``pos_tol`` of the slot centre, its heading within ``yaw_tol`` of
+the slot axis (either way) and it has stopped. Touching a pillar, parked car or wall ends the episode.
+Episodes are truncated by gymnasium's ``TimeLimit`` (``max_episode_steps=500`` in the registration).
+The full contract (spaces, reward, ends, seeding) is in docs/env.md.
 """
 
 from __future__ import annotations
@@ -19,13 +22,18 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .client import LocalSim, RemoteSim
+from .client import Frame, LocalSim, RemoteSim
 from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, step, wrap_angle
 
-__all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error"]
+__all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error", "to_controls", "to_action",
+           "MAX_EPISODE_STEPS"]
 
+MAX_EPISODE_STEPS = 500
+"""Steps (50 s simulated) before ``TimeLimit`` truncates an episode of ``gym.make("ParkSim-v0")``."""
 _SUCCESS_BONUS, _COLLISION_PENALTY, _STEP_COST, _YAW_WEIGHT = 10.0, 10.0, 0.01, 0.5
 _TOP_PX_PER_M = 16
+_MARGIN_M = 5.0
+"""Slack (m) around the scene bounds in the observation boxes (a start pose may sit near a wall)."""
 
 
 def slot_pose(slot: dict[str, Any]) -> tuple[np.ndarray, float]:
@@ -49,20 +57,38 @@ def heading_error(yaw: float, slot_yaw: float) -> float:
     return min(e, math.pi - e)
 
 
+def to_controls(action: Sequence[float] | np.ndarray, p: VehicleParams) -> tuple[float, float]:
+    """(acceleration m/s^2, steering rad) for a normalised action, clipped to [-1, 1] first.
+
+    ``action[0]`` = +1 is ``p.max_accel``, -1 is ``-p.max_decel`` (linear on each side of 0: the car
+    brakes harder than it accelerates); ``action[1]`` = +-1 is +-``p.max_steer`` (positive steers left)."""
+    a = np.clip(np.asarray(action, np.float64).reshape(2), -1.0, 1.0)
+    accel = a[0] * (p.max_accel if a[0] >= 0 else p.max_decel)
+    return float(accel), float(a[1] * p.max_steer)
+
+
+def to_action(accel: float, steer: float, p: VehicleParams) -> np.ndarray:
+    """Inverse of ``to_controls``: the float32 normalised action for physical controls (clipped to the limits)."""
+    a = accel / (p.max_accel if accel >= 0 else p.max_decel)
+    return np.clip(np.array([a, steer / p.max_steer], np.float32), -1.0, 1.0)
+
+
 class ParkingEnv(gym.Env):
-    """Closed-loop parking in a reconstructed garage: fisheye views and/or BEV plus ego state in, controls out."""
+    """Closed-loop parking in a reconstructed garage: views and ego-relative target in, normalised controls out."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, bundle: str | Path | Any = None, server: str | None = None, scene: str | None = None,
-                 api_key: str | None = None, cameras: Sequence[str] | None = None, bev: bool = False,
-                 scale: float = 0.25, max_steps: int = 500, pos_tol: float = 0.35, yaw_tol: float = 0.15,
+                 api_key: str | None = None, sim: LocalSim | RemoteSim | None = None,
+                 cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 0.25,
+                 privileged: bool = False, pos_tol: float = 0.35, yaw_tol: float = 0.15,
                  vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None) -> None:
-        if (bundle is None) == (server is None):
-            raise ValueError("ParkingEnv needs exactly one frame source: bundle=<bundle folder> or server=<URL>")
+        if sum(source is not None for source in (bundle, server, sim)) != 1:
+            raise ValueError("ParkingEnv needs exactly one frame source: bundle=<bundle folder>, server=<URL> "
+                             "or sim=<LocalSim or RemoteSim>")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.sim: LocalSim | RemoteSim = (LocalSim(bundle) if server is None
+        self.sim: LocalSim | RemoteSim = (sim if sim is not None else LocalSim(bundle) if server is None
                                           else RemoteSim(server, scene=scene, api_key=api_key))
         info = self.sim.info()
         if not info.get("map") or not free_slots(info["map"]):
@@ -71,24 +97,28 @@ class ParkingEnv(gym.Env):
         self.cameras = list(self.sim.cameras if cameras is None else cameras)
         if isinstance(self.sim, LocalSim):
             self.sim.check(self.cameras, scale)
-        self.bev, self.scale, self.max_steps = bev, scale, max_steps
+        self.bev, self.scale, self.privileged = bev, scale, privileged
         self.pos_tol, self.yaw_tol, self.vehicle = pos_tol, yaw_tol, vehicle
         self.render_mode = render_mode
         self.obstacles = Obstacles(self.world_map.get("obstacles", []))
-        self.action_space: spaces.Box = spaces.Box(np.array([-vehicle.max_decel, -vehicle.max_steer], np.float32),
-                                                   np.array([vehicle.max_accel, vehicle.max_steer], np.float32))
-        self.observation_space = spaces.Dict(self._image_spaces(info) | {"state": self._state_space(info)})
+        self.action_space: spaces.Box = spaces.Box(-1.0, 1.0, (2,), np.float32)
+        self.observation_space = spaces.Dict(self._image_spaces(info) | self._state_spaces(info))
         self.state = VehicleState(0.0, 0.0, 0.0)
         self.slot: dict[str, Any] = free_slots(self.world_map)[0]
-        self.steps, self._cost = 0, 0.0
+        self._cost = 0.0
         self._background: np.ndarray | None = None
 
-    def _state_space(self, info: dict[str, Any]) -> spaces.Box:
-        """``[x, y, yaw, v, steer, target_x, target_y, target_yaw]``, bounded by the scene and the car's limits."""
+    def _state_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Space[Any]]:
+        """``state`` = ``[v, steer, slot_x, slot_y, slot_yaw]`` (slot in the ego frame); ``pose`` when privileged."""
         (x0, x1), (y0, y1), p = info["bounds"]["x"], info["bounds"]["y"], self.vehicle
-        lo = [x0 - 5, y0 - 5, -math.pi, -p.max_reverse, -p.max_steer, x0 - 5, y0 - 5, -math.pi]
-        hi = [x1 + 5, y1 + 5, math.pi, p.max_speed, p.max_steer, x1 + 5, y1 + 5, math.pi]
-        return spaces.Box(np.array(lo, np.float32), np.array(hi, np.float32))
+        reach = math.hypot(x1 - x0, y1 - y0) + 2 * _MARGIN_M
+        out: dict[str, spaces.Space[Any]] = {"state": spaces.Box(
+            np.array([-p.max_reverse, -p.max_steer, -reach, -reach, -math.pi], np.float32),
+            np.array([p.max_speed, p.max_steer, reach, reach, math.pi], np.float32))}
+        if self.privileged:
+            out["pose"] = spaces.Box(np.array([x0 - _MARGIN_M, y0 - _MARGIN_M, -math.pi], np.float32),
+                                     np.array([x1 + _MARGIN_M, y1 + _MARGIN_M, math.pi], np.float32))
+        return out
 
     def _image_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Space[Any]]:
         """uint8 HxWx3 boxes for the requested views at ``scale`` (the BEV has the rig's BEV size)."""
@@ -114,12 +144,8 @@ class ParkingEnv(gym.Env):
                 return VehicleState(x, y, float(wrap_angle(yaw)))
         raise RuntimeError("no collision-free start pose found on the aisles")
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
-              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """New episode. ``options``: ``start`` = (x, y, yaw) and/or ``slot`` = slot id (default: random free slot).
-
-        The random start is drawn before the slot, so the same seed gives the same start whatever slot is chosen.
-        """
+    def begin(self, seed: int | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Start an episode without rendering (``reset`` = ``begin`` + ``observe``); returns its info."""
         super().reset(seed=seed)
         options = options or {}
         self.state = (VehicleState(*map(float, options["start"])) if "start" in options else self._random_start())
@@ -131,22 +157,34 @@ class ParkingEnv(gym.Env):
             self.slot = chosen[0]
         else:
             self.slot = slots[int(self.np_random.integers(len(slots)))]
-        self.steps = 0
         self._cost = self._progress_cost()
-        return self._observation(), self._info(collided=False)
+        return self._info(collided=False)
 
-    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
-        """Apply ``[acceleration, steering]`` for 0.1 s; reward is progress towards the slot, +-10 on park/collision."""
-        a = np.clip(np.asarray(action, np.float64).reshape(2), self.action_space.low, self.action_space.high)
-        self.state = step(self.state, float(a[0]), float(a[1]), self.vehicle)
-        self.steps += 1
+    def advance(self, action: np.ndarray) -> tuple[float, bool, dict[str, Any]]:
+        """Apply one normalised action for 0.1 s without rendering (``step`` = ``advance`` + ``observe``):
+        (reward, terminated, info)."""
+        accel, steer = to_controls(action, self.vehicle)
+        self.state = step(self.state, accel, steer, self.vehicle)
         collided = self.obstacles.collides(self.state.pose, self.vehicle)
         cost = self._progress_cost()
         info = self._info(collided)
         reward = self._cost - cost - _STEP_COST + _SUCCESS_BONUS * info["is_success"] - _COLLISION_PENALTY * collided
         self._cost = cost
-        terminated = bool(info["is_success"] or collided)
-        return self._observation(), float(reward), terminated, self.steps >= self.max_steps, info
+        return float(reward), bool(info["is_success"] or collided), info
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """New episode. ``options``: ``start`` = (x, y, yaw) and/or ``slot`` = slot id (default: random free slot).
+
+        The random start is drawn before the slot, so the same seed gives the same start whatever slot is chosen.
+        """
+        info = self.begin(seed, options)
+        return self.observe(self._frame()), info
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        """Apply the normalised ``[acceleration, steering]`` for 0.1 s; never truncates (``TimeLimit`` does)."""
+        reward, terminated, info = self.advance(action)
+        return self.observe(self._frame()), reward, terminated, False, info
 
     # --- measurements --------------------------------------------------------------------
     def errors(self) -> tuple[float, float]:
@@ -166,18 +204,38 @@ class ParkingEnv(gym.Env):
         d = (x0 + x1) / 2
         return (float(centre[0] - d * math.cos(yaw)), float(centre[1] - d * math.sin(yaw)), yaw)
 
+    def slot_in_ego_frame(self) -> tuple[float, float, float]:
+        """The target slot's centre (m; x forward, y left, origin under the rear axle) and parking heading (rad),
+        in the ego frame."""
+        centre, slot_yaw = slot_pose(self.slot)
+        s = self.state
+        dx, dy = centre[0] - s.x, centre[1] - s.y
+        c, si = math.cos(s.yaw), math.sin(s.yaw)
+        return (c * dx + si * dy, -si * dx + c * dy, float(wrap_angle(slot_yaw - s.yaw)))
+
     def _info(self, collided: bool) -> dict[str, Any]:
         dist, yaw_err = self.errors()
         parked = dist < self.pos_tol and yaw_err < self.yaw_tol and abs(self.state.v) < 0.1
-        return {"slot": self.slot["id"], "distance": dist, "heading_error": yaw_err, "collision": bool(collided),
-                "is_success": bool(parked and not collided), "pose": self.state.pose, "speed": self.state.v}
+        info = {"slot": self.slot["id"], "distance": dist, "heading_error": yaw_err, "collision": bool(collided),
+                "is_success": bool(parked and not collided), "speed": self.state.v}
+        return info | {"pose": self.state.pose} if self.privileged else info
 
-    def _observation(self) -> dict[str, np.ndarray]:
+    @property
+    def renders(self) -> bool:
+        """Whether observations hold images (a camera or the BEV was asked for)."""
+        return bool(self.cameras or self.bev)
+
+    def _frame(self) -> Frame | None:
+        return self.sim.render(self.state.pose, self.cameras, self.bev, self.scale) if self.renders else None
+
+    def observe(self, frame: Frame | None) -> dict[str, np.ndarray]:
+        """The observation at the current state, with ``frame``'s views (rendered at ``state.pose``; None when
+        ``renders`` is False)."""
         s = self.state
-        tx, ty, tyaw = self.target_pose()
-        obs: dict[str, np.ndarray] = {"state": np.array([s.x, s.y, s.yaw, s.v, s.steer, tx, ty, tyaw], np.float32)}
-        if self.cameras or self.bev:
-            frame = self.sim.render(s.pose, self.cameras, self.bev, self.scale)
+        obs: dict[str, np.ndarray] = {"state": np.array([s.v, s.steer, *self.slot_in_ego_frame()], np.float32)}
+        if self.privileged:
+            obs["pose"] = np.array(s.pose, np.float32)
+        if frame is not None:
             obs.update(frame.images)
             if frame.bev is not None:   # exactly when self.bev asked for one
                 obs["bev"] = frame.bev
@@ -225,4 +283,4 @@ class ParkingEnv(gym.Env):
 
 
 if "ParkSim-v0" not in gym.registry:
-    gym.register("ParkSim-v0", entry_point="parksim.env:ParkingEnv")
+    gym.register("ParkSim-v0", entry_point="parksim.env:ParkingEnv", max_episode_steps=MAX_EPISODE_STEPS)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import gymnasium as gym
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -32,10 +33,17 @@ def test_dubins_paths_reach_the_goal_with_bounded_curvature(gx, gy, gyaw, syaw):
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     bundle = make_bundle(tmp_path_factory.mktemp("planner") / "tiny", n=300, bev_px=64)
-    return ParkingEnv(bundle=bundle, cameras=[], max_steps=400)
+    return gym.make("ParkSim-v0", bundle=bundle, cameras=[], privileged=True, max_episode_steps=400)
 
 
 def test_planner_parks_in_a_test_episode(env):
     result = run_episode(env, seed=1)
     assert result["planned"] and result["is_success"] and not result["collision"], result
-    assert result["distance"] < env.pos_tol and result["heading_error"] < env.yaw_tol
+    assert result["distance"] < env.unwrapped.pos_tol and result["heading_error"] < env.unwrapped.yaw_tol
+    assert 0 < result["steps"] < 400
+
+
+def test_planner_refuses_an_env_without_the_world_pose(env):
+    blind = ParkingEnv(sim=env.unwrapped.sim, cameras=[])
+    with pytest.raises(ValueError, match="privileged=True"):
+        run_episode(blind, seed=1)

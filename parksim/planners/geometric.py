@@ -1,7 +1,7 @@
 """A geometric parking controller: Dubins path to the slot's axis, straight in, pure-pursuit tracking.
 
-It uses only what ``ParkingEnv`` exposes (the slot map and obstacles, the ego state): for the
-target slot it builds candidate paths (Dubins curves at a few turning radii to an entry pose on
+It uses what a privileged ``ParkingEnv`` exposes (``privileged=True``: the world pose; the slot map and
+obstacles): for the target slot it builds candidate paths (Dubins curves at a few turning radii to an entry pose on
 the slot axis, then straight to the head-in parking pose), keeps the shortest whose swept
 footprint clears every obstacle, and follows it with pure pursuit and a speed profile that stops
 on the goal. The example of closed-loop use; not an optimal planner (forward moves only).
@@ -14,9 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 
-from ..env import ParkingEnv, free_slots, slot_pose
+from ..env import ParkingEnv, free_slots, slot_pose, to_action
 from ..vehicle import Obstacles, VehicleParams, footprint, wrap_angle
 
 __all__ = ["GeometricParker", "dubins_paths", "run_episode"]
@@ -166,11 +167,12 @@ class GeometricParker:
         self._arc = np.concatenate([[0.0], np.cumsum(seg)])
         self._index = 0
 
-    def act(self, state: np.ndarray) -> np.ndarray:
-        """``[acceleration, steering]`` for the env state ``[x, y, yaw, v, steer, ...]``."""
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The normalised action for a privileged observation (world ``pose``, speed ``state[0]``)."""
         if self.path is None or self._arc is None:
             raise RuntimeError("GeometricParker.act: no path to follow; call follow(path) first")
-        x, y, yaw, v = (float(s) for s in state[:4])
+        x, y, yaw = (float(s) for s in obs["pose"])
+        v = float(obs["state"][0])
         window = self.path[self._index:self._index + 40, :2]
         self._index += int(np.argmin(np.hypot(window[:, 0] - x, window[:, 1] - y)))
         remaining = self._arc[-1] - self._arc[self._index]
@@ -188,24 +190,30 @@ class GeometricParker:
         if self._index >= len(self.path) - 1:
             remaining = max(along, 0.0)
         v_ref = min(self.cruise, math.sqrt(2 * 0.8 * max(remaining - 0.05, 0.0)))
-        accel = np.clip(2.0 * (v_ref - v), -self.vehicle.max_decel, self.vehicle.max_accel)
-        return np.array([accel, np.clip(steer, -self.vehicle.max_steer, self.vehicle.max_steer)], np.float32)
+        return to_action(2.0 * (v_ref - v), steer, self.vehicle)
 
 
-def run_episode(env: ParkingEnv, seed: int, parker: GeometricParker | None = None,
+def run_episode(env: gym.Env, seed: int, parker: GeometricParker | None = None,
                 on_step: Callable[[ParkingEnv], None] | None = None) -> dict[str, Any]:
-    """Reset with ``seed``, pick the free slot with the best path, drive into it; returns the final info + steps."""
-    parker = parker or GeometricParker(env.vehicle)
-    _, info = env.reset(seed=seed)
-    chosen = parker.choose_slot(info["pose"], env.world_map)
+    """Reset with ``seed``, pick the free slot with the best path, drive into it; returns the final info + steps.
+
+    ``env`` is a privileged ``ParkingEnv``, bare or wrapped (``gym.make``: its ``TimeLimit`` ends a stuck episode).
+    """
+    park = env.unwrapped
+    if not isinstance(park, ParkingEnv) or not park.privileged:
+        raise ValueError("run_episode needs a ParkingEnv made with privileged=True (the planner reads the world pose)")
+    parker = parker or GeometricParker(park.vehicle)
+    obs, info = env.reset(seed=seed)
+    x, y, yaw = (float(v) for v in obs["pose"])
+    chosen = parker.choose_slot((x, y, yaw), park.world_map)
     if chosen is None:
         return {**info, "steps": 0, "planned": False}
     obs, info = env.reset(seed=seed, options={"slot": chosen[0]})
     parker.follow(chosen[1])
     steps, done = 0, False
     while not done:
-        obs, _, terminated, truncated, info = env.step(parker.act(obs["state"]))
+        obs, _, terminated, truncated, info = env.step(parker.act(obs))
         steps, done = steps + 1, terminated or truncated
         if on_step is not None:
-            on_step(env)
+            on_step(park)
     return {**info, "steps": steps, "planned": True}
