@@ -86,8 +86,12 @@ class DatasetReader:
                 names = sorted(per_image[0])
                 if any(sorted(p) != names for p in per_image):
                     raise DatasetError(path, "every frame's T_world_camera must name the same cameras")
-                cams = {c: self._pose_column(path, [p[c] for p in per_image], f"T_world_camera[{c!r}]")
-                        for c in names}
+                cams = {}
+                for c in names:
+                    column = self._pose_column(path, [p[c] for p in per_image], f"T_world_camera[{c!r}]")
+                    if column is None:
+                        raise DatasetError(path, f"T_world_camera[{c!r}] is null in every frame")
+                    cams[c] = column
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
             if isinstance(e, DatasetError):
                 raise

@@ -18,8 +18,10 @@ __all__ = ["DatasetWriter", "to_uint8"]
 
 
 def to_uint8(image: Any) -> np.ndarray:
-    """Float image in [0, 1] (numpy or torch, HxWx3) -> uint8, rounded."""
+    """Float image in [0, 1] (numpy or torch, HxWx3) -> uint8, rounded; a uint8 image is returned as it is."""
     arr = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
+    if arr.dtype == np.uint8:
+        return arr
     return np.clip(np.rint(arr * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -71,7 +73,7 @@ class DatasetWriter:
         _write_json(self.layout.poses, {"frames": entries})
 
     def image(self, camera: str, frame: int, image: Any) -> None:
-        """Float RGB [0, 1] HxWx3 -> uint8 PNG."""
+        """RGB HxWx3, float in [0, 1] or uint8 -> uint8 PNG."""
         _imwrite(self.layout.image(camera, frame), cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR))
 
     def ipm(self, frame: int, image: Any) -> None:
