@@ -1,0 +1,431 @@
+"""nerfstudio ``transforms.json``: ``parksim import nerfstudio`` reads one, ``parksim export nerfstudio`` writes one.
+
+Every nerfstudio convention lives here (nerfstudio's ``nerfstudio_dataparser.py`` and ``ns-process-data``):
+
+- ``transform_matrix`` is camera-to-world with OpenGL camera axes (x right, y up, z back); ParkSim's camera frame is
+  OpenCV's (x right, y down, z forward), so ``T_world_camera = transform_matrix @ diag(1, -1, -1, 1)``.
+- The world is the file's, as stored: ``applied_transform`` (what ``ns-process-data`` applied to its source's
+  world, e.g. COLMAP's) is already in every ``transform_matrix`` and in the ``ply_file_path`` points; it is
+  reported, not undone.
+- Pixels: nerfstudio puts the first pixel's centre at (0.5, 0.5), ParkSim at (0, 0): ``cx_parksim = cx - 0.5``.
+- Intrinsics ``fl_x, fl_y, cx, cy, w, h``: a top-level key holds for every frame, else each frame gives it;
+  distortion ``k1..k4, p1, p2`` all come from the top level when any of them is there, else from each frame
+  (absent = 0). ``camera_model`` is top-level (absent: a perspective camera, as nerfstudio).
+- Images are grouped into cameras by parent folder when they lie in several folders, else by distinct intrinsics
+  (``cam0``, ``cam1``... in order of appearance); into frames by the last integer in the file stem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .recording import Dropped, ImageSource, Recording, RecordingError, check_pose
+
+if TYPE_CHECKING:
+    from ..camera import CameraModel
+    from ..data import DatasetReader
+
+__all__ = ["HELP", "DESCRIPTION", "add_arguments", "load", "read_transforms", "export", "transforms_of",
+           "undistortion_map", "OPENGL_FROM_OPENCV"]
+
+HELP = "a nerfstudio transforms.json (OPENCV_FISHEYE, OPENCV or PINHOLE cameras) with its images"
+DESCRIPTION = (
+    "Read a nerfstudio dataset: transforms.json (camera_model OPENCV_FISHEYE, OPENCV, PINHOLE or another "
+    "perspective model; fl_x, fl_y, cx, cy, w, h and k1..k4, p1, p2 at the top level or per frame; per frame "
+    "file_path relative to the json and transform_matrix camera-to-world in OpenGL camera axes; optional time (s), "
+    "ply_file_path, train/val/test_filenames). Images are grouped into cameras by parent folder (else by distinct "
+    "intrinsics) and into frames by the last integer in the file name; a frame missing a camera is dropped. "
+    "Perspective images with distortion are undistorted to pinhole cameras with the same focal length and centre. "
+    "Timestamps are the frames' time, else frame number / --fps. See docs/import_nerfstudio.md.")
+
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+"""Right factor between ParkSim's T_world_camera (OpenCV axes) and nerfstudio's transform_matrix (OpenGL axes);
+its own inverse."""
+PIXEL_OFFSET = 0.5
+"""nerfstudio's principal point minus ParkSim's: their pixel centres sit at half-integers, ours at integers."""
+FISHEYE = "OPENCV_FISHEYE"
+PERSPECTIVE = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
+"""nerfstudio's perspective models: all one camera type there (fl_x, fl_y, cx, cy and optional distortion)."""
+INTRINSICS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+SPLITS = {"train": ("train_filenames",), "test": ("test_filenames", "val_filenames")}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The source and the frame rate used when frames carry no time."""
+    from ..commands.argtypes import number
+
+    p.add_argument("transforms", type=Path, help="transforms.json, or the folder holding it")
+    p.add_argument("--fps", type=number(0, open_low=True), default=10.0,
+                   help="frame rate giving timestamps (frame number / fps) when frames have no 'time'")
+
+
+@dataclass(frozen=True)
+class Lens:
+    """One image's camera as transforms.json states it (nerfstudio pixel convention)."""
+
+    model: str
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...]   # k1, k2, k3, k4, p1, p2
+    max_fov_deg: float | None
+
+    def camera(self) -> CameraModel:
+        """The ParkSim camera: OpenCVFisheye, or Pinhole (after undistortion when there is distortion)."""
+        from ..camera import OpenCVFisheye, Pinhole
+
+        cx, cy = self.cx - PIXEL_OFFSET, self.cy - PIXEL_OFFSET
+        fov = {} if self.max_fov_deg is None else {"max_fov_deg": self.max_fov_deg}
+        if self.model == FISHEYE:
+            return OpenCVFisheye(self.width, self.height, self.fx, self.fy, cx, cy, list(self.distortion[:4]), **fov)
+        return Pinhole(self.width, self.height, self.fx, self.fy, cx, cy, **fov)
+
+    @property
+    def undistort(self) -> bool:
+        """Whether the images must be resampled to become pinhole images."""
+        return self.model != FISHEYE and any(self.distortion)
+
+
+@dataclass(frozen=True)
+class Image:
+    """One entry of ``frames``: its file, frame id, time, camera and pose."""
+
+    path: Path
+    frame: int
+    time: float | None
+    lens: Lens
+    T_world_camera: np.ndarray
+
+
+def _load_json(path: Path) -> tuple[Path, dict[str, Any]]:
+    """The transforms file (``path`` or ``path/transforms.json``) and its content."""
+    file = path / "transforms.json" if path.is_dir() else path
+    if not file.is_file():
+        raise RecordingError(f"{file}: file not found")
+    try:
+        meta = json.loads(file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise RecordingError(f"{file}: not valid JSON: {e}") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise RecordingError(f"{file}: expected an object with a non-empty 'frames' list")
+    return file, meta
+
+
+def _number(entry: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
+    value = entry.get(key, default)
+    if value is None:
+        raise RecordingError(f"{where}: no {key!r} (at the top level or in the frame)")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RecordingError(f"{where}: {key!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _lens(meta: dict[str, Any], frame: dict[str, Any], model: str, where: str) -> Lens:
+    """A frame's intrinsics: per key from the top level if there, else from the frame (nerfstudio's rule)."""
+    def pick(key: str, default: float | None = None) -> float:
+        return _number(meta if key in meta else frame, key, where, default)
+
+    source = meta if any(k in meta for k in DISTORTION) else frame
+    distortion = tuple(_number(source, k, where, 0.0) for k in DISTORTION)
+    size = []
+    for key in ("w", "h"):
+        v = pick(key)
+        if v != int(v) or v <= 0:
+            raise RecordingError(f"{where}: {key!r} must be a positive integer, got {v}")
+        size.append(int(v))
+    fov = meta.get("max_fov_deg", frame.get("max_fov_deg"))
+    if model == FISHEYE and any(distortion[4:]):
+        raise RecordingError(f"{where}: OPENCV_FISHEYE has no tangential distortion, got p1, p2 = {distortion[4:]}")
+    return Lens(model, size[0], size[1], pick("fl_x"), pick("fl_y"), pick("cx"), pick("cy"), distortion,
+                None if fov is None else _number({"max_fov_deg": fov}, "max_fov_deg", where))
+
+
+def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
+    """T_world_camera (OpenCV axes) from a 4x4 or 3x4 camera-to-world ``transform_matrix`` (OpenGL axes)."""
+    try:
+        M = np.array(frame["transform_matrix"], dtype=np.float64)
+    except KeyError:
+        raise RecordingError(f"{where}: no 'transform_matrix'") from None
+    except (TypeError, ValueError):
+        raise RecordingError(f"{where}: transform_matrix must be a 4x4 (or 3x4) matrix of numbers") from None
+    if M.shape == (3, 4):
+        M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
+    if M.shape != (4, 4):
+        raise RecordingError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {M.shape}")
+    if not np.isfinite(M).all():
+        raise RecordingError(f"{where}: transform_matrix has non-finite values")
+    check_pose(M, f"{where}: transform_matrix")
+    return M @ OPENGL_FROM_OPENCV
+
+
+def _frame_id(path: Path, where: str) -> int:
+    """The last integer in the file stem: ``frame_00012.png`` and ``000012.png`` are frame 12."""
+    digits = re.findall(r"\d+", path.stem)
+    if not digits:
+        raise RecordingError(f"{where}: no frame number in the file name {path.name!r}")
+    return int(digits[-1])
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the file header, without decoding the pixels."""
+    from PIL import Image as PILImage
+    from PIL import UnidentifiedImageError
+
+    try:
+        with PILImage.open(path) as img:
+            return img.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise RecordingError(f"{path}: not a readable image: {e}") from None
+
+
+def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
+    """Parse and check transforms.json: every frame's file exists at its stated size, its pose is rigid."""
+    file, meta = _load_json(path)
+    model = meta.get("camera_model", "OPENCV")
+    if model != FISHEYE and model not in PERSPECTIVE:
+        raise RecordingError(f"{file}: camera_model {model!r} is not supported; use {FISHEYE} or one of "
+                             f"{', '.join(PERSPECTIVE)}")
+    images = []
+    for i, frame in enumerate(meta["frames"]):
+        where = f"{file} frames[{i}]"
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
+            raise RecordingError(f"{where}: no 'file_path'")
+        image = file.parent / frame["file_path"]
+        where = f"{where} ({frame['file_path']})"
+        if not image.is_file():
+            raise RecordingError(f"{where}: image file not found")
+        lens = _lens(meta, frame, model, where)
+        if _image_size(image) != (lens.width, lens.height):
+            w, h = _image_size(image)
+            raise RecordingError(f"{where}: image is {w}x{h} but w, h say {lens.width}x{lens.height}")
+        time = None if "time" not in frame else _number(frame, "time", where)
+        images.append(Image(image, _frame_id(image, where), time, lens, _pose(frame, where)))
+    if len({im.time is None for im in images}) > 1:
+        raise RecordingError(f"{file}: 'time' must be given for every frame or for none")
+    return file, meta, images
+
+
+def _group(file: Path, images: list[Image]) -> tuple[list[str], str]:
+    """Each image's camera name and the rule used: parent folder when there are several, else intrinsics."""
+    parents = list(dict.fromkeys(im.path.parent for im in images))
+    if len(parents) > 1:
+        names = [p.name for p in parents]
+        clash = sorted({n for n in names if names.count(n) > 1})
+        if clash:
+            raise RecordingError(f"{file}: image folders share the name {clash[0]!r}; camera names come from the "
+                                 "parent folder's name")
+        return [im.path.parent.name for im in images], "parent folder"
+    lenses = list(dict.fromkeys(im.lens for im in images))
+    return [f"cam{lenses.index(im.lens)}" for im in images], "distinct intrinsics"
+
+
+def undistortion_map(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """Source pixel (ParkSim convention) of every pinhole pixel: nerfstudio's perspective distortion,
+    radial ``1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8`` and tangential p1, p2, applied to the pixel's ray."""
+    k1, k2, k3, k4, p1, p2 = lens.distortion
+    cx, cy = lens.cx - PIXEL_OFFSET, lens.cy - PIXEL_OFFSET
+    v, u = np.mgrid[0:lens.height, 0:lens.width].astype(np.float64)
+    x, y = (u - cx) / lens.fx, (v - cy) / lens.fy
+    r = x * x + y * y
+    d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
+    xd = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x)
+    yd = y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
+    return (lens.fx * xd + cx).astype(np.float32), (lens.fy * yd + cy).astype(np.float32)
+
+
+def _source(path: Path, lens: Lens) -> ImageSource:
+    """Decode ``path`` as uint8 RGB (EXIF orientation ignored, as nerfstudio), undistorted when it must be."""
+    def read() -> np.ndarray:
+        import cv2
+
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if img is None:
+            raise RecordingError(f"{path}: cannot decode the image (corrupt or unsupported)")
+        rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+        if lens.undistort:
+            mx, my = undistortion_map(lens)
+            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return rgb
+
+    return read
+
+
+def _points(file: Path, meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``ply_file_path`` point cloud (x, y, z and red, green, blue), or None."""
+    if "ply_file_path" not in meta:
+        return None
+    from plyfile import PlyData
+
+    path = file.parent / str(meta["ply_file_path"])
+    if not path.is_file():
+        raise RecordingError(f"{path}: ply_file_path not found")
+    try:
+        v = PlyData.read(str(path))["vertex"]
+        xyz = np.stack([v["x"], v["y"], v["z"]], 1).astype(np.float64)
+        rgb = np.stack([v["red"], v["green"], v["blue"]], 1)
+    except (KeyError, ValueError, IndexError, EOFError) as e:
+        raise RecordingError(f"{path}: not a point-cloud PLY with x, y, z, red, green, blue: {e}") from None
+    if rgb.dtype != np.uint8:
+        raise RecordingError(f"{path}: colours must be 8-bit (uchar red, green, blue), got {rgb.dtype}")
+    if not np.isfinite(xyz).all():
+        raise RecordingError(f"{path}: non-finite point coordinates")
+    return xyz, rgb
+
+
+def _split(file: Path, meta: dict[str, Any], frame_images: dict[int, list[Path]]
+           ) -> tuple[list[int], list[int]] | None:
+    """(train, test) frames from ``train_filenames`` and ``test_filenames``/``val_filenames``: a frame is test
+    when any of its images is listed for test or val, else train. None when the file has no split."""
+    if not any(k in meta for keys in SPLITS.values() for k in keys):
+        return None
+    listed = set()
+    for key in SPLITS["test"]:
+        names = meta.get(key, [])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise RecordingError(f"{file}: {key} must be a list of file paths")
+        listed |= {os.path.normpath(file.parent / n) for n in names}
+    test = [f for f, paths in frame_images.items() if any(os.path.normpath(p) in listed for p in paths)]
+    return [f for f in frame_images if f not in set(test)], test
+
+
+def _timestamp(images: list[Image], fps: float) -> float:
+    """A frame's time: the earliest ``time`` of its images, else its frame number / ``fps``."""
+    times = [im.time for im in images if im.time is not None]
+    return min(times) if times else images[0].frame / fps
+
+
+def load(args: argparse.Namespace) -> Recording:
+    """Read a nerfstudio dataset into a Recording with per-image poses (the import command fits the rig)."""
+    import torch
+
+    from ..rig import BEVSpec, Rig, RigCamera
+
+    file, meta, images = read_transforms(Path(args.transforms))
+    names, rule = _group(file, images)
+    cameras = list(dict.fromkeys(names))
+    lenses: dict[str, Lens] = {}
+    table: dict[tuple[int, str], Image] = {}
+    for im, cam in zip(images, names):
+        if lenses.setdefault(cam, im.lens) != im.lens:
+            raise RecordingError(f"{file}: camera {cam!r} has images with different intrinsics ({im.path.name})")
+        if (im.frame, cam) in table:
+            raise RecordingError(f"{file}: {table[(im.frame, cam)].path.name} and {im.path.name} are both frame "
+                                 f"{im.frame} of camera {cam!r}")
+        table[(im.frame, cam)] = im
+    models = {}
+    for cam, lens in lenses.items():
+        try:
+            models[cam] = lens.camera()
+        except ValueError as e:
+            raise RecordingError(f"{file}: camera {cam!r}: {e}") from None
+    frames, dropped = [], []
+    for f in sorted({f for f, _ in table}):
+        missing = [c for c in cameras if (f, c) not in table]
+        if missing:
+            dropped.append(Dropped(f"no image from camera(s) {', '.join(missing)}", frame=f))
+        else:
+            frames.append(f)
+    if not frames:
+        raise RecordingError(f"{file}: no frame has an image from every camera {cameras}")
+    timed = images[0].time is not None
+    stamps = [_timestamp([table[(f, c)] for c in cameras], args.fps) for f in frames]
+    rig = Rig({c: RigCamera(c, models[c], torch.eye(4, dtype=torch.float64)) for c in cameras}, BEVSpec())
+    undistorted = [c for c in cameras if lenses[c].undistort]
+    notes: dict[str, Any] = {
+        "source": str(file), "camera_model": meta.get("camera_model", "OPENCV (absent)"), "cameras_by": rule,
+        "timestamps": "the frames' time" if timed else f"frame number / {args.fps} fps",
+        "applied_transform": meta.get("applied_transform"),
+        "undistorted": {c: "perspective distortion resampled to a pinhole with the same fl_x, fl_y, cx, cy"
+                        for c in undistorted}}
+    ignored = sorted({k for fr in meta["frames"] for k in ("mask_path", "depth_file_path") if k in fr})
+    if ignored:
+        notes["ignored"] = ignored
+    return Recording(
+        rig=rig, frames=frames, timestamps=stamps,
+        images={(f, c): _source(table[(f, c)].path, lenses[c]) for f in frames for c in cameras},
+        camera_poses=[{c: table[(f, c)].T_world_camera for c in cameras} for f in frames],
+        points=_points(file, meta), dropped=dropped, notes=notes,
+        split=_split(file, meta, {f: [table[(f, c)].path for c in cameras] for f in frames}))
+
+
+# --- export -------------------------------------------------------------------------------------------------------
+def _lens_keys(name: str, model: CameraModel) -> tuple[str, dict[str, Any]]:
+    """camera_model and the transforms.json intrinsics of a ParkSim camera; other models are a clear error."""
+    from ..camera import OpenCVFisheye, Pinhole
+
+    if not isinstance(model, (OpenCVFisheye, Pinhole)):
+        raise ValueError(f"camera {name!r} is {model.model}; nerfstudio export supports opencv_fisheye "
+                         "(OPENCV_FISHEYE) and pinhole (PINHOLE) cameras only")
+    keys: dict[str, Any] = {"fl_x": float(model.fx), "fl_y": float(model.fy), "cx": float(model.cx) + PIXEL_OFFSET,
+                            "cy": float(model.cy) + PIXEL_OFFSET, "w": model.width, "h": model.height}
+    if isinstance(model, OpenCVFisheye):
+        keys.update(zip(DISTORTION[:4], (float(v) for v in model.k)))
+    keys["max_fov_deg"] = model.max_fov_deg
+    return (FISHEYE if isinstance(model, OpenCVFisheye) else "PINHOLE"), keys
+
+
+def transforms_of(reader: DatasetReader) -> tuple[dict[str, Any], list[tuple[Path, str]]]:
+    """transforms.json for a dataset and the (source, relative destination) image copies it refers to."""
+    from ..data.layout import frame_name
+
+    rig = reader.rig
+    lenses = {c: _lens_keys(c, rig.cameras[c].model) for c in rig.names}
+    kinds = {kind for kind, _ in lenses.values()}
+    if len(kinds) > 1:
+        raise ValueError(f"the rig mixes {' and '.join(sorted(kinds))} cameras; nerfstudio's camera_model is one "
+                         "per transforms.json")
+    shared = all(keys == lenses[rig.names[0]][1] for _, keys in lenses.values())
+    meta: dict[str, Any] = {"camera_model": kinds.pop(), **(lenses[rig.names[0]][1] if shared else {})}
+    frames: list[dict[str, Any]] = []
+    copies: list[tuple[Path, str]] = []
+    names: dict[int, list[str]] = {}
+    for f, t in zip(reader.frames, reader.timestamps):
+        for c in rig.names:
+            rel = f"images/{c}/{frame_name(f)}.png"
+            T = reader.camera_pose(c, f).numpy() @ OPENGL_FROM_OPENCV
+            frames.append({"file_path": rel, "transform_matrix": T.tolist(), "time": float(t),
+                           **({} if shared else lenses[c][1])})
+            copies.append((reader.layout.image(c, f), rel))
+            names.setdefault(f, []).append(rel)
+    meta["frames"] = frames
+    test = reader.split["test"]
+    if test:
+        meta["train_filenames"] = [n for f in reader.split["train"] for n in names[f]]
+        meta["val_filenames"] = meta["test_filenames"] = [n for f in test for n in names[f]]
+    if reader.layout.points.is_file():
+        meta["ply_file_path"] = "sparse_pc.ply"
+        copies.append((reader.layout.points, "sparse_pc.ply"))
+    return meta, copies
+
+
+def export(dataset: str | Path, out: str | Path, overwrite: bool = False) -> dict[str, Any]:
+    """Write ``dataset`` as a nerfstudio folder at ``out`` (transforms.json, images copied byte for byte,
+    sparse_pc.ply), all or nothing; returns a short report."""
+    from ..data import DatasetReader
+    from ..fileio import atomic_directory
+
+    reader = DatasetReader(dataset)
+    meta, copies = transforms_of(reader)
+    with atomic_directory(out, overwrite=overwrite) as tmp:
+        for src, rel in copies:
+            (tmp / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(src, tmp / rel)
+        (tmp / "transforms.json").write_text(json.dumps(meta, indent=1))
+    return {"output": str(out), "camera_model": meta["camera_model"], "cameras": reader.rig.names,
+            "frames": len(reader.frames), "images": len(meta["frames"]),
+            "intrinsics": "shared (top level)" if "fl_x" in meta else "per frame",
+            "points": "ply_file_path" in meta, "split": "train_filenames" in meta}
