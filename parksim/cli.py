@@ -20,7 +20,8 @@ __all__ = ["COMMANDS", "build_parser", "describe", "main"]
 prefer_sleeping_omp_threads()   # before any subcommand imports torch
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "reconstruct", "eval", "colmap", "detector", "render", "ipm", "serve", "bench", "compact"]
+COMMANDS = ["demo", "synth", "imports", "export", "reconstruct", "batch", "eval", "colmap", "detector", "render",
+            "ipm", "serve", "bench", "compact", "bundle"]
 
 _OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)
 _OS_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.ENAMETOOLONG, errno.ENOTEMPTY,

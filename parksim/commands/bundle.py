@@ -1,0 +1,123 @@
+"""``parksim bundle from-ply``: a servable scene bundle from a third-party INRIA 3DGS PLY and a ParkSim rig."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_parser", "run", "read_transform"]
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``bundle from-ply`` (cheap: no heavy imports)."""
+    p = sub.add_parser("bundle", help="make a scene bundle from a third-party 3DGS PLY",
+                       description="Build scene bundles from Gaussians trained elsewhere.")
+    modes = p.add_subparsers(dest="mode", metavar="MODE", required=True)
+    ply = modes.add_parser(
+        "from-ply", help="bundle an INRIA 3DGS PLY (graphdeco, gsplat, nerfstudio exports) with a rig",
+        description="Read an INRIA 3DGS PLY (SH degree 0-3), move it into ParkSim's world frame (z up, floor at "
+                    "z = 0: --frame names the PLY's axis convention, --transform a similarity applied after it) "
+                    "and write OUTPUT as a scene bundle: gaussians.ply, rig.json, bundle.json, and map.json "
+                    "with --map. OUTPUT appears only when complete. See docs/bundle.md.")
+    ply.add_argument("ply", type=Path, help="the 3DGS PLY (graphdeco point_cloud.ply, a gsplat or splatfacto export)")
+    ply.add_argument("--rig", type=Path, required=True, help="rig.json/.yaml, or a dataset folder (its rig.json)")
+    ply.add_argument("-o", "--output", type=Path, required=True, help="bundle folder to write")
+    ply.add_argument("--frame", choices=["parksim", "opencv", "colmap", "opengl"], default="parksim",
+                     help="the PLY world's axes: parksim x forward, y left, z up; opencv and colmap x right, "
+                          "y down, z forward; opengl x right, y up, z backward")
+    ply.add_argument("--transform", nargs="+", metavar="T",
+                     help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major")
+    ply.add_argument("--map", type=Path, help="map.json (or a dataset folder's) in the same world frame")
+    ply.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
+    return p
+
+
+def _numbers(text: str) -> Any:
+    """The numbers in ``text`` (separated by spaces, commas or newlines) as a float64 array."""
+    import numpy as np
+
+    return np.array([float(v) for v in text.replace(",", " ").split()], dtype=np.float64)
+
+
+def read_transform(tokens: list[str]) -> Any:
+    """A 4x4 float64 array from ``--transform``'s tokens: one file (.json, .txt, .npy) or 16 numbers (separated by
+    spaces or commas, in one token or several)."""
+    import json
+
+    import numpy as np
+
+    path = Path(tokens[0])
+    kind = path.suffix.lower() if len(tokens) == 1 else ""
+    try:
+        if kind == ".json":
+            values = np.asarray(json.loads(path.read_text()), dtype=np.float64)
+        elif kind == ".txt":
+            values = _numbers(path.read_text())
+        elif kind == ".npy":
+            values = np.load(path, allow_pickle=False).astype(np.float64)
+        else:
+            values = _numbers(" ".join(tokens))
+    except (OSError, ValueError, TypeError) as e:
+        what = f"{path}: cannot read a 4x4 matrix" if kind else "takes a .json/.txt/.npy file or 16 numbers"
+        raise ValueError(f"--transform {what} ({' '.join(str(e).split())})") from None
+    if values.size != 16:
+        where = f"--transform {path}" if kind else "--transform"
+        raise ValueError(f"{where}: a 4x4 transform has 16 numbers, got {values.size}")
+    return values.reshape(4, 4)
+
+
+def _read_map(path: Path) -> dict[str, Any]:
+    """The JSON object in a map.json (or a dataset folder's map.json)."""
+    import json
+
+    from ..data import DatasetLayout
+
+    path = DatasetLayout(path).map if path.is_dir() else path
+    try:
+        world_map = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--map {path}: unreadable JSON ({' '.join(str(e).split())})") from None
+    if not isinstance(world_map, dict):
+        raise ValueError(f"--map {path}: a map is a JSON object, got {type(world_map).__name__}")
+    return world_map
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check every input, convert the Gaussians, write OUTPUT atomically and print a summary."""
+    import datetime
+
+    import numpy as np
+
+    from .. import bundle as bundle_io
+    from ..data import DatasetLayout
+    from ..fileio import atomic_directory
+    from ..ply_3dgs import T_parksim_ply, read_ply, similarity_parts
+    from ..rig import Rig
+    from .outputs import check_output_folder
+
+    transform = read_transform(args.transform) if args.transform else None
+    if transform is not None:
+        similarity_parts(transform)
+    check_output_folder(args.output, overwrite=args.overwrite)
+    rig = Rig.load(DatasetLayout(args.rig).rig if args.rig.is_dir() else args.rig)
+    world_map = _read_map(args.map) if args.map else None
+    scene = read_ply(args.ply, args.frame, transform)
+    T = T_parksim_ply(args.frame, transform)
+    meta = {"source": f"third-party 3DGS PLY {args.ply.resolve()}", "gaussians": len(scene),
+            "sh_degree": scene.sh_degree,
+            "ply_import": {"ply": str(args.ply.resolve()), "frame": args.frame,
+                           "transform": None if transform is None else transform.tolist(),
+                           "T_parksim_ply": T.tolist()},
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    bundle = bundle_io.Bundle(scene.spatially_sorted(), rig, world_map, meta)
+    with atomic_directory(args.output) as tmp:
+        bundle_io.save(tmp, bundle)
+    lo, hi = np.percentile(scene.means.double().numpy(), [1, 99], axis=0)
+    span = ", ".join(f"{a} [{lo[i]:.2f}, {hi[i]:.2f}]" for i, a in enumerate("xyz"))
+    print(f"wrote {args.output}: {len(scene)} Gaussians, SH degree {scene.sh_degree}, frame {args.frame}; "
+          f"1st-99th percentile of the means (m): {span}")
+    if world_map is None:
+        print("no map.json (pass --map): render, serve and the viewer work; the gym env and parksim compact "
+              "need a map with a garage and slots")
+    return 0

@@ -1,0 +1,103 @@
+"""Third-party INRIA 3DGS PLY files in their own world frame, brought into ParkSim's (z up, floor at z = 0).
+
+The file layout is ParkSim's own (``GaussianScene.load_ply`` / ``save_ply``); what differs is the world frame.
+``FRAMES`` names the conventions a foreign scene's axes follow; ``T_parksim_ply`` composes one with a
+similarity (rotation or reflection, uniform scale, translation) applied after it, and ``transform_scene`` moves
+every Gaussian by such a transform: means, rotations, log-scales and the degree 1-3 SH coefficients together.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .gaussians import GaussianScene, PLYFormatError
+from .geometry import quaternion_from_rotation
+from .sh_rotation import rotate_sh
+
+__all__ = ["FRAMES", "T_parksim_ply", "similarity_parts", "transform_scene", "read_ply", "write_ply"]
+
+FRAMES: dict[str, np.ndarray] = {
+    "parksim": np.eye(3),
+    "opencv": np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+    "colmap": np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+    "opengl": np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+}
+"""``R_parksim_ply`` per convention: the PLY's forward axis becomes ParkSim x, its left y and its up z.
+
+parksim: x forward, y left, z up (no change). opencv and colmap: x right, y down, z forward (COLMAP's world
+is that of its upright cameras). opengl (nerfstudio, Blender cameras): x right, y up, z backward.
+"""
+
+ORTHOGONAL_TOL = 1e-5
+"""Largest |entry| of ``A A^T / s^2 - I`` a transform may have: matrices printed with 6 decimals pass."""
+
+
+def similarity_parts(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(s, Q, t)`` with ``T = [[s Q, t], [0, 0, 0, 1]]``, ``s > 0`` and ``Q`` orthogonal (nearest one by SVD).
+
+    ``ValueError`` (one line) unless ``T`` is a finite 4x4 similarity within ``ORTHOGONAL_TOL``.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"a transform must be a finite 4x4 matrix, got shape {T.shape}"
+                         + ("" if T.shape != (4, 4) else " with non-finite entries"))
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"a transform's last row must be 0 0 0 1, got {T[3].tolist()}")
+    A = T[:3, :3]
+    s = abs(float(np.linalg.det(A))) ** (1.0 / 3.0)
+    error = float(np.abs(A @ A.T / s**2 - np.eye(3)).max()) if s > 0 else math.inf
+    if not error <= ORTHOGONAL_TOL:
+        raise ValueError(f"a transform must be a similarity (uniform scale times a rotation or reflection); "
+                         f"its 3x3 part is off by {error:.3g} (tolerance {ORTHOGONAL_TOL:g})")
+    u, _, vt = np.linalg.svd(A)
+    return s, u @ vt, T[:3, 3].copy()
+
+
+def T_parksim_ply(frame: str, transform: np.ndarray | None = None) -> np.ndarray:
+    """The 4x4 from PLY world coordinates to ParkSim's: ``frame``'s axis change, then ``transform`` (default I)."""
+    if frame not in FRAMES:
+        raise ValueError(f"unknown frame {frame!r}; one of {sorted(FRAMES)}")
+    F = np.eye(4)
+    F[:3, :3] = FRAMES[frame]
+    return (np.eye(4) if transform is None else np.asarray(transform, dtype=np.float64)) @ F
+
+
+def transform_scene(scene: GaussianScene, T: np.ndarray) -> GaussianScene:
+    """``scene`` moved by the similarity ``T`` (float64 maths, ``scene``'s dtype): what was seen from a camera is
+    seen, unchanged in colour, from the transformed camera.
+
+    A reflection ``Q`` turns each Gaussian like the rotation ``-Q`` (a Gaussian is symmetric about its centre)
+    and its SH by ``Q`` itself.
+    """
+    s, Q, t = similarity_parts(T)
+    f64 = scene.to(torch.float64)
+    Qt = torch.from_numpy(Q)
+    turn = quaternion_from_rotation(Qt * float(np.sign(np.linalg.det(Q))))
+    w0, v0 = turn[0], turn[1:]
+    w, v = f64.quats[:, 0], f64.quats[:, 1:]
+    quats = torch.cat([(w0 * w - v @ v0)[:, None],
+                       w0 * v + w[:, None] * v0 + torch.linalg.cross(v0.expand_as(v), v)], dim=1)
+    out = GaussianScene(s * f64.means @ Qt.T + torch.from_numpy(t), quats, f64.log_scales + math.log(s),
+                        f64.opacity_logits, rotate_sh(f64.sh, Q), scene.sh_degree)
+    return out.to(scene.means.dtype)
+
+
+def read_ply(path: str | Path, frame: str = "parksim", transform: np.ndarray | None = None,
+             dtype: torch.dtype = torch.float32) -> GaussianScene:
+    """A third-party INRIA 3DGS PLY (SH degree 0-3) as a ParkSim scene: ``T_parksim_ply(frame, transform)``
+    applied to it in float64. ``PLYFormatError`` names a missing property or a non-finite value."""
+    scene = GaussianScene.load_ply(path, dtype=torch.float64)
+    if len(scene) == 0:
+        raise PLYFormatError(f"{path}: holds no Gaussians")
+    return transform_scene(scene, T_parksim_ply(frame, transform)).to(dtype)
+
+
+def write_ply(scene: GaussianScene, path: str | Path, frame: str = "parksim",
+              transform: np.ndarray | None = None) -> None:
+    """Write ``scene`` as an INRIA 3DGS PLY in a foreign world frame: the inverse of ``read_ply`` with the same
+    ``frame`` and ``transform``."""
+    transform_scene(scene, np.linalg.inv(T_parksim_ply(frame, transform))).save_ply(path)
