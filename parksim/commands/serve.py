@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import signal
 import socket
+import threading
+from pathlib import Path
+from typing import Any
 
 from .argtypes import integer, number, tcp_port
 
@@ -32,7 +36,30 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="largest reply one request may ask for, counted before rendering; larger: 413 (default 64)")
     p.add_argument("--reply-budget-mib", type=number(0, open_low=True),
                    help="reply MiB rendered or being sent at once over all clients; beyond: 503 (default 256)")
+    ray = p.add_argument_group("Ray Serve (needs parksim[ray]; docs/ray.md)",
+                               "the same API from Ray Serve replicas, each loading the scenes itself (so --scenes "
+                               "must be readable at the same path on every node); the limits above are per replica")
+    ray.add_argument("--ray", action="store_true", help="serve through Ray Serve instead of one process")
+    ray.add_argument("--address", help="join this Ray cluster (e.g. ray://head:10001 or head:6379); default: start "
+                                       "a local Ray instance on this machine's cores")
+    count = ray.add_mutually_exclusive_group()
+    count.add_argument("--replicas", type=integer(1), help="fixed number of replicas (default 1)")
+    count.add_argument("--autoscale", type=_span, metavar="MIN,MAX",
+                       help="scale between MIN and MAX replicas (1 <= MIN <= MAX) on each replica's ongoing requests")
+    ray.add_argument("--replica-cpus", type=integer(1),
+                     help="CPUs each replica reserves and renders with (default 1)")
     return p
+
+
+def _span(text: str) -> tuple[int, int]:
+    """``MIN,MAX`` replicas with 1 <= MIN <= MAX."""
+    try:
+        low, high = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MIN,MAX like 1,4, got {text!r}") from None
+    if not 1 <= low <= high:
+        raise argparse.ArgumentTypeError(f"need 1 <= MIN <= MAX, got {text}")
+    return low, high
 
 
 def bind(host: str, port: int) -> list[socket.socket]:
@@ -63,8 +90,6 @@ def bind(host: str, port: int) -> list[socket.socket]:
 
 def run(args: argparse.Namespace) -> int:
     """Validate the settings and bind policy, bind the port, load the scenes, serve until interrupted."""
-    import uvicorn
-
     from server import Settings, create_app
     from server.auth import check_bind
 
@@ -73,6 +98,13 @@ def run(args: argparse.Namespace) -> int:
                                  max_reply_bytes=_mib(args.max_reply_mib),
                                  reply_budget_bytes=_mib(args.reply_budget_mib))
     check_bind(args.host, settings.api_key)
+    if args.ray:
+        return _run_ray(args, settings)
+    given = [flag for flag in ("address", "replicas", "autoscale", "replica_cpus") if getattr(args, flag) is not None]
+    if given:
+        raise ValueError(f"--{given[0].replace('_', '-')} only applies with --ray")
+    import uvicorn
+
     sockets = bind(args.host, args.port)
     try:
         app = create_app(args.scenes, settings)
@@ -84,6 +116,34 @@ def run(args: argparse.Namespace) -> int:
     finally:
         for sock in sockets:
             sock.close()
+    return 0
+
+
+def _run_ray(args: argparse.Namespace, settings: Any) -> int:
+    """Deploy on Ray Serve (a local Ray instance, or the cluster at ``--address``) and serve until Ctrl-C or
+    SIGTERM, then take the deployment (and a Ray this process started) down."""
+    try:
+        from server import ray_serve
+    except ModuleNotFoundError as e:
+        if e.name != "ray" and not str(e.name).startswith("ray."):
+            raise
+        raise ValueError("--ray needs Ray Serve, which is not installed: install parksim[ray] "
+                         "(pip install 'parksim[ray]')") from None
+    if not Path(args.scenes).is_dir():
+        raise ValueError(f"scenes folder not found: {args.scenes}")
+    for sock in bind(args.host, args.port):   # a busy port fails before Ray starts; Serve's proxy binds it next
+        sock.close()
+    scaling = ray_serve.Scaling(args.replicas or 1, args.autoscale, args.replica_cpus or 1)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)   # stop as on Ctrl-C, taking Serve down
+    try:
+        ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
+        size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
+        print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
+              "(viewer at /, docs at /docs)", flush=True)
+        with contextlib.suppress(KeyboardInterrupt):
+            threading.Event().wait()
+    finally:
+        ray_serve.stop(own_ray=args.address is None)
     return 0
 
 

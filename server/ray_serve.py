@@ -1,0 +1,132 @@
+"""``parksim serve --ray``: the simulator app of ``create_app`` served by Ray Serve replicas.
+
+Each replica builds the same FastAPI app itself (``__serve_build_asgi_app__`` runs in the replica), so it loads the
+scene bundles from a path every node can read: only that path and the ``Settings`` travel from the driver, never a
+scene tensor. Importing this module imports Ray; the single-process server never does.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import ray
+from fastapi import FastAPI
+from ray import serve
+from ray.serve.deployment import Application
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from .app import create_app
+from .settings import Settings
+
+__all__ = ["SimReplica", "PicklableBodies", "Scaling", "application", "start", "stop", "APP_NAME", "HEADROOM"]
+
+APP_NAME = "parksim"
+QUIET = {"log_level": "WARNING", "enable_access_log": False}
+"""Serve's logging: warnings and errors only, no line per request (the app's /metrics counts requests)."""
+HEADROOM = 4
+"""Requests a replica accepts beyond its render pool (workers + queue), so /healthz and /metrics still get in
+while the pool is full and the app itself answers 503 for renders, as the single-process server does."""
+
+
+@serve.ingress()
+class SimReplica:
+    """One Serve replica: the simulator app over the scenes folder ``scenes``, loaded here at replica start-up."""
+
+    def __init__(self, scenes: str, settings: Settings) -> None:
+        self.scenes, self.settings = scenes, settings
+
+    def __serve_build_asgi_app__(self) -> FastAPI:
+        app = create_app(self.scenes, self.settings)
+        app.add_middleware(PicklableBodies)
+        return app
+
+
+class PicklableBodies:
+    """ASGI middleware turning ``memoryview`` response bodies into ``bytes``: Serve pickles every message a replica
+    sends to its HTTP proxy, and the app streams replies as memoryview slices (``server.replies``)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        async def send_bytes(message: Message) -> None:
+            body = message.get("body")
+            await send({**message, "body": body.tobytes()} if isinstance(body, memoryview) else message)
+
+        await self.app(scope, receive, send_bytes)
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """A fixed number of ``replicas``, or ``autoscale=(min, max)``; each replica reserves ``cpus`` Ray CPUs and
+    renders with that many threads."""
+
+    replicas: int = 1
+    autoscale: tuple[int, int] | None = None
+    cpus: int = 1
+
+    def options(self, settings: Settings) -> dict[str, object]:
+        """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs and thread counts per replica."""
+        threads = str(self.cpus)
+        out: dict[str, object] = {
+            "ray_actor_options": {"num_cpus": self.cpus,
+                                  "runtime_env": {"env_vars": {"OMP_NUM_THREADS": threads,
+                                                               "NUMBA_NUM_THREADS": threads}}},
+            "max_ongoing_requests": settings.workers + settings.queue_size + HEADROOM,
+            "max_constructor_retry_count": 1}
+        if self.autoscale is None:
+            out["num_replicas"] = self.replicas
+        else:
+            low, high = self.autoscale
+            out["autoscaling_config"] = {"min_replicas": low, "initial_replicas": low, "max_replicas": high,
+                                         "target_ongoing_requests": 2 * settings.workers}
+        return out
+
+
+def application(scenes: str | Path, settings: Settings, scaling: Scaling) -> Application:
+    """The Serve application of ``SimReplica`` over the absolute path of ``scenes``."""
+    deployment = serve.deployment(SimReplica, name="SimReplica").options(**scaling.options(settings))
+    return deployment.bind(str(Path(scenes).resolve()), settings)
+
+
+def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, port: int,
+          address: str | None = None) -> None:
+    """Start Ray on this machine's cores, or join the cluster at ``address``; start Serve's HTTP proxy on
+    ``host:port`` and deploy. Returns once every replica has loaded the scenes; ``ValueError`` with one line when
+    the cluster cannot be reached or a replica fails to start."""
+    logging.getLogger("ray.serve").setLevel(logging.WARNING)
+    quiet = {"logging_level": "ERROR", "log_to_driver": False}   # replica logs: Ray's session log folder
+    try:
+        if address is None:
+            ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, **quiet)
+        else:
+            ray.init(address=address, **quiet)
+    except ConnectionError as e:
+        raise ValueError(f"cannot join the Ray cluster at {address}: {str(e).splitlines()[0]}") from None
+    serve.start(http_options={"host": host, "port": port}, logging_config=QUIET)
+    try:
+        serve.run(application(scenes, settings, scaling), name=APP_NAME, route_prefix="/", logging_config=QUIET)
+    except RuntimeError:
+        raise ValueError(f"the Ray Serve replicas did not start: {_startup_error()}") from None
+
+
+def _startup_error() -> str:
+    """The root cause of a failed deployment: the last line of the replica's traceback that Serve reports."""
+    status = serve.status().applications[APP_NAME]
+    messages = [d.message for d in status.deployments.values() if d.message] or [status.message]
+    return [line for line in messages[0].splitlines() if line.strip()][-1].strip()
+
+
+def stop(own_ray: bool) -> None:
+    """Take the app down: all of Serve and Ray when this process started Ray (``own_ray``), else only this app
+    (other Serve apps on the cluster keep running) before disconnecting. Does nothing when Ray is not up."""
+    if not ray.is_initialized():
+        return
+    if own_ray:
+        serve.shutdown()
+    else:
+        serve.delete(APP_NAME)
+    ray.shutdown()
