@@ -18,6 +18,7 @@ Every nerfstudio convention lives here (nerfstudio's ``nerfstudio_dataparser.py`
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -233,9 +234,11 @@ def _group(file: Path, images: list[Image]) -> tuple[list[str], str]:
     return [f"cam{lenses.index(im.lens)}" for im in images], "distinct intrinsics"
 
 
+@functools.lru_cache(maxsize=16)
 def undistortion_map(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
     """Source pixel (ParkSim convention) of every pinhole pixel: nerfstudio's perspective distortion,
-    radial ``1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8`` and tangential p1, p2, applied to the pixel's ray."""
+    radial ``1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8`` and tangential p1, p2, applied to the pixel's ray.
+    Made once per camera (cached): the ``cv2.remap`` maps of all its images."""
     k1, k2, k3, k4, p1, p2 = lens.distortion
     cx, cy = lens.cx - PIXEL_OFFSET, lens.cy - PIXEL_OFFSET
     v, u = np.mgrid[0:lens.height, 0:lens.width].astype(np.float64)
