@@ -1,6 +1,7 @@
-"""COLMAP through pycolmap: SfM on a dataset's fisheye images, reading models, aligning recovered poses.
+"""COLMAP SfM on a dataset's fisheye images (pycolmap), and aligning the poses it recovers.
 
-``run_sfm`` extracts SIFT features per camera (OPENCV_FISHEYE with the rig's intrinsics, held fixed),
+Models are read by ``parksim.importers.colmap.read_model`` (our reader of COLMAP's files), so only SfM needs
+pycolmap. ``run_sfm`` extracts SIFT features per camera (OPENCV_FISHEYE with the rig's intrinsics, held fixed),
 matches all pairs and runs incremental mapping. ``vehicle_poses`` turns the registered images back into
 per-frame ego poses through the rig; ``align_similarity`` (Umeyama) compares them with known poses,
 since SfM recovers poses only up to a similarity transform.
@@ -16,13 +17,10 @@ import numpy as np
 
 from parksim.data import DatasetReader
 from parksim.data.layout import frame_name
+from parksim.importers.colmap import ColmapError, ColmapModel, read_model
 
 __all__ = ["ColmapError", "require_pycolmap", "read_colmap_points", "run_sfm", "import_model", "vehicle_poses",
            "align_similarity", "pose_errors"]
-
-
-class ColmapError(ValueError):
-    """pycolmap is missing, a COLMAP model is unreadable, or SfM registered too little; the message says which."""
 
 
 def require_pycolmap() -> ModuleType:
@@ -35,29 +33,15 @@ def require_pycolmap() -> ModuleType:
     return pycolmap
 
 
-def _read_model(model_dir: str | Path) -> Any:
-    pycolmap = require_pycolmap()
-    model_dir = Path(model_dir)
-    if not model_dir.is_dir():
-        raise ColmapError(f"{model_dir}: COLMAP model folder not found")
-    try:
-        return pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises bare RuntimeError / ValueError for unreadable models
-        raise ColmapError(f"{model_dir}: not a readable COLMAP model ({e})") from None
-
-
-def read_colmap_points(model_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Sparse points of a COLMAP model: positions ``[N, 3]`` float32 and colours ``[N, 3]`` uint8."""
-    model = model_dir if not isinstance(model_dir, (str, Path)) else _read_model(model_dir)
-    pts = list(model.points3D.values())
-    xyz = np.array([p.xyz for p in pts], dtype=np.float32).reshape(-1, 3)
-    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
-    return xyz, rgb
+def read_colmap_points(model: str | Path | ColmapModel) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points of a COLMAP model (or its folder): positions ``[N, 3]`` float32 and colours ``[N, 3]`` uint8."""
+    model = model if isinstance(model, ColmapModel) else read_model(model)
+    return model.xyz.astype(np.float32), model.rgb
 
 
 def run_sfm(data_dir: str | Path, work_dir: str | Path, cameras: list[str] | None = None,
-            frame_stride: int = 1, seed: int = 0) -> Any:
-    """Incremental SfM on the dataset's images; returns the largest pycolmap ``Reconstruction`` (saved in work_dir)."""
+            frame_stride: int = 1, seed: int = 0) -> ColmapModel:
+    """Incremental SfM on the dataset's images; returns the largest model, saved in ``work_dir/sparse``."""
     pycolmap = require_pycolmap()
     reader = DatasetReader(data_dir)
     work = Path(work_dir)
@@ -85,21 +69,16 @@ def run_sfm(data_dir: str | Path, work_dir: str | Path, cameras: list[str] | Non
         raise ColmapError(f"{data_dir}: COLMAP registered no images (too little texture or overlap)")
     best = max(models.values(), key=lambda r: r.num_reg_images())
     best.write(str(work / "sparse"))
-    return best
+    return read_model(work / "sparse")
 
 
-def vehicle_poses(model: Any, reader: DatasetReader) -> dict[int, np.ndarray]:
+def vehicle_poses(model: ColmapModel, reader: DatasetReader) -> dict[int, np.ndarray]:
     """Per-frame ``T_world_vehicle`` in COLMAP's world, from the first registered camera image of each frame."""
     out: dict[int, list[np.ndarray]] = {}
     for image in model.images.values():
-        if not image.has_pose:
-            continue
         camera, stem = Path(image.name).parent.name, Path(image.name).stem
-        T_cw = np.eye(4)
-        T_cw[:3] = image.cam_from_world().matrix()
-        T_wc = np.linalg.inv(T_cw)
         T_vc = reader.rig.cameras[camera].T_vehicle_camera.numpy()
-        out.setdefault(int(stem), []).append(T_wc @ np.linalg.inv(T_vc))
+        out.setdefault(int(stem), []).append(image.T_world_camera @ np.linalg.inv(T_vc))
     return {f: ts[0] for f, ts in out.items()}
 
 
@@ -139,7 +118,7 @@ def import_model(model_dir: str | Path, data_dir: str | Path, overwrite: bool = 
     """
     from parksim.data import DatasetWriter
 
-    model, data_dir = _read_model(model_dir), Path(data_dir)
+    model, data_dir = read_model(model_dir), Path(data_dir)
     writer = DatasetWriter(data_dir)
     if writer.layout.points.exists() and not overwrite:
         raise ColmapError(f"{writer.layout.points} exists (pass overwrite to replace it)")

@@ -31,11 +31,12 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     sfm.add_argument("--cameras", nargs="+", help="cameras to use (default: all of the rig)")
     sfm.add_argument("--frame-stride", type=integer(1), default=1, help="use every n-th frame")
     imp = modes.add_parser(
-        "import", help="import a COLMAP model into DATA",
+        "import", help="add a COLMAP model's points (and poses) to an existing dataset DATA",
         description="Read a COLMAP sparse model (cameras, images, points3D; binary or text) made from DATA's "
                     "images and write its points as DATA/points3d.ply, the initial point cloud of parksim "
                     "reconstruct: aligned to the dataset's poses by a similarity transform when it has them, "
-                    "else with the model's recovered vehicle poses written too. Prints a JSON report.")
+                    "else with the model's recovered vehicle poses written too. Prints a JSON report. To bring "
+                    "a COLMAP model and its images in as a new dataset, use `parksim import colmap`.")
     imp.add_argument("model", type=Path, help="COLMAP sparse model folder (cameras/images/points3D)")
     imp.add_argument("data", type=Path, help="dataset directory whose images the model was made from")
     imp.add_argument("--overwrite", action="store_true", help="replace an existing points3d.ply")
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         reader = DatasetReader(args.data)
         check_output_folder(args.work)
         model = run_sfm(args.data, args.work, args.cameras, args.frame_stride)
-        report = {"registered_images": model.num_reg_images(), "points": model.num_points3D(),
+        report = {"registered_images": len(model.images), "points": len(model.xyz),
                   "model": str(args.work / "sparse"), **pose_errors(vehicle_poses(model, reader), reader)}
     print(json.dumps(report, indent=1))
     return 0

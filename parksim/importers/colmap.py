@@ -247,9 +247,9 @@ def _read_text(folder: Path) -> tuple[dict[int, ColmapCamera], dict[int, ColmapI
     for no, line in _lines(path):
         if _is_data(line):
             try:
-                fields = line.split()
-                xyz.append([float(v) for v in fields[1:4]])
-                rgb.append([int(v) for v in fields[4:7]])
+                cols = line.split()
+                xyz.append([float(v) for v in cols[1:4]])
+                rgb.append([int(v) for v in cols[4:7]])
                 if len(xyz[-1]) != 3 or len(rgb[-1]) != 3 or not 0 <= min(rgb[-1]) <= max(rgb[-1]) <= 255:
                     raise ValueError
             except ValueError:
@@ -266,6 +266,7 @@ def read_model(folder: str | Path) -> ColmapModel:
     for fmt, ext, read in (("binary", "bin", _read_binary), ("text", "txt", _read_text)):
         if all((folder / f"{p}.{ext}").is_file() for p in parts):
             cameras, images, xyz, rgb = read(folder)
+            model_format = fmt
             break
     else:
         found = sorted(p.name for p in folder.iterdir() if p.suffix in (".bin", ".txt"))
@@ -276,7 +277,7 @@ def read_model(folder: str | Path) -> ColmapModel:
         raise ColmapError(f"{folder}: images refer to camera ids {unknown} that the cameras file lacks")
     if not np.isfinite(xyz).all():
         raise ColmapError(f"{folder}: points3D has non-finite coordinates")
-    return ColmapModel(folder, fmt, cameras, images, xyz, rgb)
+    return ColmapModel(folder, model_format, cameras, images, xyz, rgb)
 
 
 # --- model -> Recording -------------------------------------------------------------------------------------------
@@ -291,20 +292,18 @@ def _lens(cam: ColmapCamera) -> tuple[Any, Callable[[], Undistortion] | None]:
     p = cam.params
     if cam.model == "OPENCV_FISHEYE":
         return OpenCVFisheye(cam.width, cam.height, p[0], p[1], p[2] - 0.5, p[3] - 0.5, list(p[4:])), None
-    f, c, dist = {"SIMPLE_PINHOLE": ((p[0], p[0]), p[1:3], None), "PINHOLE": (p[0:2], p[2:4], None),
-                  "SIMPLE_RADIAL": ((p[0], p[0]), p[1:3], (p[3], 0.0, 0.0, 0.0)),
-                  "RADIAL": ((p[0], p[0]), p[1:3], (p[3], p[4], 0.0, 0.0)),
-                  "OPENCV": (p[0:2], p[2:4], p[4:8])}[cam.model]
-    pinhole = Pinhole(cam.width, cam.height, f[0], f[1], c[0] - 0.5, c[1] - 0.5)
-    if dist is None:
+    # SIMPLE_* and RADIAL have one focal length; the distortion terms after it are cv2's k1 k2 p1 p2, zero-padded.
+    fx, fy, cx, cy, *dist = (p[0], *p) if cam.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") else p
+    pinhole = Pinhole(cam.width, cam.height, fx, fy, cx - 0.5, cy - 0.5)
+    if not dist:
         return pinhole, None
 
     def maps() -> Undistortion:
         import cv2
 
-        K = np.array([[f[0], 0.0, c[0] - 0.5], [0.0, f[1], c[1] - 0.5], [0.0, 0.0, 1.0]])
-        return cv2.initUndistortRectifyMap(K, np.array(dist, np.float64), None, K, (cam.width, cam.height),
-                                           cv2.CV_32FC1)
+        K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+        D = np.array([*dist, 0.0, 0.0, 0.0][:4], np.float64)
+        return cv2.initUndistortRectifyMap(K, D, None, K, (cam.width, cam.height), cv2.CV_32FC1)
     return pinhole, maps
 
 
@@ -327,7 +326,8 @@ def _source(path: Path, maps: Callable[[], Undistortion] | None, cache: dict[int
 
 def _camera_names(model: ColmapModel) -> dict[int, str]:
     """Image id -> camera name: its folder (``/`` -> ``_``), or ``cam<camera id>`` at the top level."""
-    names, ids_of = {}, {}
+    names: dict[int, str] = {}
+    ids_of: dict[str, set[int]] = {}
     for im in model.images.values():
         folder = Path(im.name).parent.as_posix()
         name = folder.replace("/", "_") if folder != "." else f"cam{im.camera_id}"
@@ -388,8 +388,8 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
     paths = {(f, c): images_dir / by_frame[f][c].name for f in frames for c in order}
     absent = [p for p in paths.values() if not p.is_file()]
     if absent:
-        raise ColmapError(f"--images {images_dir}: {len(absent)} of {len(paths)} images named in the model are "
-                          f"missing, e.g. {absent[0]}")
+        raise ColmapError(f"{len(absent)} of {len(paths)} images named in {model.path} are missing from "
+                          f"{images_dir} (see --images), e.g. {absent[0]}")
     cache: dict[int, Undistortion] = {}
     images = {(f, c): _source(p, lenses[c][1], cache, camera_of[c].camera_id) for (f, c), p in paths.items()}
     undistorted = {c: f"{camera_of[c].model} -> pinhole (same K), cv2.remap bilinear, black where the source has "
