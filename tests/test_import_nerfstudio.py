@@ -241,7 +241,8 @@ def test_distorted_perspective_cameras_are_undistorted_to_pinholes(tmp_path: Pat
             T = np.eye(4)
             T[:3, 3] = [0.5 * f, 0.2 * i, 1.0]
             frames.append({"file_path": name, "transform_matrix": T.tolist(), **lens})
-    _write_meta(src, {"camera_model": "OPENCV", "w": 80, "h": 60, "frames": frames})
+    applied = [[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0]]   # as ns-process-data writes
+    _write_meta(src, {"camera_model": "OPENCV", "w": 80, "h": 60, "applied_transform": applied, "frames": frames})
     out = tmp_path / "ds"
     assert main(["import", "nerfstudio", str(src / "transforms.json"), "-o", str(out), "--fps", "4",
                  "--quiet"]) == 0
@@ -250,6 +251,9 @@ def test_distorted_perspective_cameras_are_undistorted_to_pinholes(tmp_path: Pat
     assert reader.timestamps == [0.5, 1.0, 1.5]
     report = json.loads((out / REPORT_FILE).read_text())
     assert report["cameras_by"] == "distinct intrinsics" and sorted(report["undistorted"]) == ["cam0", "cam1"]
+    assert report["applied_transform"] == applied      # reported; the poses are already in the file's world
+    assert torch.equal(reader.camera_pose("cam1", 4), torch.tensor(
+        [[1.0, 0, 0, 2.0], [0, -1.0, 0, 0.2], [0, 0, -1.0, 1.0], [0, 0, 0, 1.0]], dtype=torch.float64))
     for c, lens in zip(reader.rig.names, lenses):
         model = reader.rig.cameras[c].model
         assert model.to_dict() == {"model": "pinhole", "width": 80, "height": 60, "fx": lens["fl_x"],

@@ -347,16 +347,15 @@ def load(args: argparse.Namespace) -> Recording:
     timed = images[0].time is not None
     stamps = [_timestamp([table[(f, c)] for c in cameras], args.fps) for f in frames]
     rig = Rig({c: RigCamera(c, models[c], torch.eye(4, dtype=torch.float64)) for c in cameras}, BEVSpec())
-    undistorted = [c for c in cameras if lenses[c].undistort]
     notes: dict[str, Any] = {
         "source": str(file), "camera_model": meta.get("camera_model", "OPENCV (absent)"), "cameras_by": rule,
         "timestamps": "the frames' time" if timed else f"frame number / {args.fps} fps",
-        "applied_transform": meta.get("applied_transform"),
-        "undistorted": {c: "perspective distortion resampled to a pinhole with the same fl_x, fl_y, cx, cy"
-                        for c in undistorted}}
-    ignored = sorted({k for fr in meta["frames"] for k in ("mask_path", "depth_file_path") if k in fr})
-    if ignored:
-        notes["ignored"] = ignored
+        "principal_point": "cx = cx_nerfstudio - 0.5, cy = cy_nerfstudio - 0.5 (pixel centres at 0.5 there, 0 here)"}
+    undistorted = {c: "nerfstudio's perspective distortion -> pinhole (same fl_x, fl_y, cx, cy), cv2.remap "
+                      "bilinear, black where the source has no pixel" for c in cameras if lenses[c].undistort}
+    extra = {"applied_transform": meta.get("applied_transform"), "undistorted": undistorted,
+             "ignored": sorted({k for fr in meta["frames"] for k in ("mask_path", "depth_file_path") if k in fr})}
+    notes.update({k: v for k, v in extra.items() if v})
     return Recording(
         rig=rig, frames=frames, timestamps=stamps,
         images={(f, c): _source(table[(f, c)].path, lenses[c]) for f in frames for c in cameras},
