@@ -19,7 +19,7 @@ from parksim.env import ParkingEnv
 from parksim.gaussians import GaussianScene
 from parksim.geometry import quaternion_from_rotation, rotation_from_quaternion
 from parksim.imageio import read_image, to_uint8
-from parksim.ply_3dgs import FRAMES, read_ply, similarity_parts, write_ply
+from parksim.ply_3dgs import FRAMES, read_ply, similarity_parts, transform_scene, write_ply
 from parksim.render import render
 from parksim.render.sh import eval_sh, sh_basis
 from parksim.sh_rotation import rotate_sh
@@ -64,6 +64,27 @@ def test_rotated_sh_shows_every_colour_in_the_rotated_direction(degree: int, Q: 
     before, after = _radiance(sh, d, degree), _radiance(turned, d @ torch.from_numpy(Q).T, degree)
     assert (after - before).abs().max() <= 64 * np.spacing(before.abs().max().item())
     assert (turned[:, 1:] - sh[:, 1:]).abs().max() > 0.1     # the coefficients did change
+
+
+def _covariances(scene: GaussianScene) -> torch.Tensor:
+    R = rotation_from_quaternion(scene.quats)
+    return R @ torch.diag_embed(torch.exp(2 * scene.log_scales)) @ R.transpose(1, 2)
+
+
+@pytest.mark.parametrize("T", [SIMILARITY, MIRROR], ids=["similarity", "mirror"])
+def test_transform_scene_is_the_similarity_applied_to_each_gaussian(T: np.ndarray) -> None:
+    """Against the definition, in float64: m' = s Q m + t, cov' = s^2 Q cov Q^T, colour'(Q d) = colour(d)."""
+    scene = GaussianScene.random(300, sh_degree=3, seed=5, dtype=torch.float64)
+    moved = transform_scene(scene, T)
+    s, Q, t = (torch.as_tensor(v, dtype=torch.float64) for v in similarity_parts(T))
+    want_means = s * scene.means @ Q.T + t
+    assert (moved.means - want_means).abs().max() <= 16 * np.spacing(want_means.abs().max().item())
+    want_cov = s**2 * Q @ _covariances(scene) @ Q.T
+    assert (_covariances(moved) - want_cov).abs().max() <= 64 * np.spacing(want_cov.abs().max().item())
+    assert torch.equal(moved.opacity_logits, scene.opacity_logits)
+    d = _unit(len(scene), seed=3)
+    before, after = _radiance(scene.sh, d, 3), _radiance(moved.sh, d @ Q.T, 3)
+    assert (after - before).abs().max() <= 64 * np.spacing(before.abs().max().item())
 
 
 def _scene_sh3(n: int = 3000) -> tuple[GaussianScene, dict]:
