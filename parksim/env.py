@@ -179,12 +179,12 @@ class ParkingEnv(gym.Env):
         The random start is drawn before the slot, so the same seed gives the same start whatever slot is chosen.
         """
         info = self.begin(seed, options)
-        return self.observe(self._frame()), info
+        return self.observe(self.frame()), info
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Apply the normalised ``[acceleration, steering]`` for 0.1 s; never truncates (``TimeLimit`` does)."""
         reward, terminated, info = self.advance(action)
-        return self.observe(self._frame()), reward, terminated, False, info
+        return self.observe(self.frame()), reward, terminated, False, info
 
     # --- measurements --------------------------------------------------------------------
     def errors(self) -> tuple[float, float]:
@@ -225,7 +225,8 @@ class ParkingEnv(gym.Env):
         """Whether observations hold images (a camera or the BEV was asked for)."""
         return bool(self.cameras or self.bev)
 
-    def _frame(self) -> Frame | None:
+    def frame(self) -> Frame | None:
+        """The views at the current pose, rendered by ``sim`` (None when ``renders`` is False)."""
         return self.sim.render(self.state.pose, self.cameras, self.bev, self.scale) if self.renders else None
 
     def observe(self, frame: Frame | None) -> dict[str, np.ndarray]:
@@ -283,4 +284,5 @@ class ParkingEnv(gym.Env):
 
 
 if "ParkSim-v0" not in gym.registry:
-    gym.register("ParkSim-v0", entry_point="parksim.env:ParkingEnv", max_episode_steps=MAX_EPISODE_STEPS)
+    gym.register("ParkSim-v0", entry_point="parksim.env:ParkingEnv", max_episode_steps=MAX_EPISODE_STEPS,
+                 vector_entry_point="parksim.vector_env:make_vector_env")
