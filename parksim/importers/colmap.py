@@ -411,7 +411,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The model folder, ``--images`` and ``--fps``."""
     from ..commands.argtypes import number
 
-    p.add_argument("model", type=Path, help="COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)")
+    p.add_argument("model", type=Path, metavar="MODEL", help="COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)")
     p.add_argument("--images", type=Path, metavar="DIR",
                    help="folder the model's image names are relative to (default: images/ beside MODEL, else "
                         "beside its parent)")
