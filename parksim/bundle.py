@@ -7,6 +7,8 @@ map.json           the dataset's world slot map and obstacles (optional)
 bundle.json        metadata: format version, source dataset, iterations, per-camera response,
                    recorded_path (the dataset's ego path, ``recorded_path()``)
 config.yaml        the training config used (optional)
+poses.json         the per-frame poses the scene was trained at, refined by pose refinement (optional; the
+                   dataset's poses.json schema plus "refined": the frame ids whose poses were fitted)
 visibility.npz     per-region visibility written by ``parksim compact`` (optional, named in bundle.json)
 metrics.jsonl/png  training metrics (optional)
 ```
@@ -33,6 +35,7 @@ BUNDLE_VERSION = 1
 """Bumped when the bundle layout changes incompatibly."""
 
 GAUSSIANS, RIG, MAP, META, VISIBILITY = "gaussians.ply", "rig.json", "map.json", "bundle.json", "visibility.npz"
+POSES = "poses.json"
 RECORDED_PATH_POINTS = 256
 """Most poses ``recorded_path`` keeps: enough to draw and measure the path, small enough for a scene's JSON."""
 
@@ -57,7 +60,8 @@ class BundleError(ValueError):
 class Bundle:
     """A trained scene: Gaussians, the rig (with its BEV spec), the world map, metadata, optional visibility grid.
 
-    ``meta["visibility"]`` names the grid's file and is kept in step with ``visibility`` by ``save``.
+    ``meta["visibility"]`` names the grid's file and is kept in step with ``visibility`` by ``save``;
+    ``poses`` (poses.json) are the refined training poses when pose refinement ran (``rig`` is then refined too).
     """
 
     scene: GaussianScene
@@ -65,6 +69,7 @@ class Bundle:
     map: dict[str, Any] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
     visibility: VisibilityGrid | None = None
+    poses: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -85,6 +90,8 @@ def save(directory: str | Path, bundle: Bundle) -> Path:
     atomic_write(directory / RIG, bundle.rig.save)
     if bundle.map is not None:
         write_json(directory / MAP, bundle.map)
+    if bundle.poses is not None:
+        write_json(directory / POSES, bundle.poses)
     meta = {k: v for k, v in bundle.meta.items() if k != "visibility"}
     if bundle.visibility is not None:
         atomic_write(directory / VISIBILITY, bundle.visibility.save)
@@ -126,8 +133,9 @@ def load(directory: str | Path) -> Bundle:
     except (PLYFormatError, CalibrationError) as e:
         raise BundleError(str(e)) from None
     world_map = _read_json(directory / MAP) if _inside(directory, MAP, "file").is_file() else None
+    poses = _read_json(directory / POSES) if _inside(directory, POSES, "file").is_file() else None
     meta.pop("version")
-    return Bundle(scene, rig, world_map, meta, _load_visibility(directory, meta.get("visibility"), len(scene)))
+    return Bundle(scene, rig, world_map, meta, _load_visibility(directory, meta.get("visibility"), len(scene)), poses)
 
 
 def _load_visibility(directory: Path, name: Any, n_gaussians: int) -> VisibilityGrid | None:

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .slot_aware.config import SlotAwareConfig
 
-__all__ = ["TrainConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config", "load_config",
+__all__ = ["TrainConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config", "load_config",
            "parse_config", "dump_config"]
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "parksim" / "configs"
@@ -114,6 +114,21 @@ class RunConfig(_Strict):
     progress: bool = True
 
 
+class PoseRefineConfig(_Strict):
+    """Learned corrections of the ego (or per-image) poses and the extrinsics (``recon.pose_refine``).
+
+    ``enabled: auto`` turns them on exactly for imported recordings (meta.json ``source: import``): real odometry
+    and calibration are never exact, synthetic ones are. Rotations in rad, translations in m, per Adam step.
+    """
+
+    enabled: Literal["auto"] | bool = "auto"
+    extrinsics: bool = Field(True, description="also refine each camera's T_vehicle_camera (ego datasets)")
+    lr: float = Field(1e-3, gt=0, description="Adam lr of the corrections (nerfstudio: 6e-4, gsplat: 1e-5)")
+    lr_final_factor: float = Field(0.01, gt=0, le=1, description="lr decays exponentially to this fraction")
+    weight_decay: float = Field(1e-6, ge=0, description="Adam (L2) weight decay pulling corrections to identity")
+    test_steps: int = Field(100, ge=0, description="evaluation: test-time pose alignment steps (0: none)")
+
+
 class TrainConfig(_Strict):
     """Everything ``parksim reconstruct`` needs besides the data."""
 
@@ -124,6 +139,7 @@ class TrainConfig(_Strict):
     slot_aware: SlotAwareConfig = Field(SlotAwareConfig(), description="phase 2; its iterations count in the "
                                         "learning-rate schedule (phase 1 + phase 2 = the paper's 30k)")
     densify: DensifyConfig = DensifyConfig()
+    pose_opt: PoseRefineConfig = PoseRefineConfig()
 
     @property
     def schedule_iterations(self) -> int:

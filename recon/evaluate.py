@@ -7,7 +7,7 @@ import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
@@ -16,20 +16,30 @@ from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
 from parksim.imageio import write_image
 from parksim.render import render
+from parksim.rig import Rig
 
+from .config import PoseRefineConfig
 from .masks import scene_mask
 from .metrics import psnr, slot_region_mask, slot_segments, ssim
+from .pose_refine import POSES_KEY, align_poses
+
+if TYPE_CHECKING:
+    from parksim.bundle import Bundle
 
 __all__ = ["render_view", "evaluate_views", "EvalReport", "summarize"]
 
 Response = Callable[[Tensor, str], Tensor]
+ViewPose = Callable[[str, int], Tensor]
+"""``(camera, frame) -> T_world_vehicle`` to render that view at (``DatasetReader.view_pose`` or a refined one)."""
 
 
 def render_view(scene: GaussianScene, reader: DatasetReader, frame: int, camera: str, response: Response | None,
-                backend: str) -> Tensor:
-    """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped)."""
-    image = render(scene, reader.rig, reader.view_pose(camera, frame), cameras=[camera],
-                   backend=backend).images[camera]
+                backend: str, rig: Rig | None = None, view_pose: ViewPose | None = None) -> Tensor:
+    """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped).
+
+    ``rig`` and ``view_pose`` default to the dataset's; pose refinement passes its refined rig and poses."""
+    pose = (view_pose or reader.view_pose)(camera, frame)
+    image = render(scene, rig or reader.rig, pose, cameras=[camera], backend=backend).images[camera]
     return response(image, camera) if response is not None else image
 
 
@@ -56,22 +66,24 @@ def summarize(report: EvalReport, cameras: list[str], frames: list[int]) -> dict
 @torch.no_grad()
 def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tuple[int, str]],
                    response: Response | None, backend: str = "auto", slots: bool = True,
-                   side_by_side: Path | None = None) -> EvalReport:
-    """Score each ``(frame, camera)`` view against the dataset over the camera's scene mask."""
-    rig = reader.rig
+                   side_by_side: Path | None = None, rig: Rig | None = None,
+                   view_pose: ViewPose | None = None) -> EvalReport:
+    """Score each ``(frame, camera)`` view against the dataset over the camera's scene mask (rendered with ``rig``
+    at ``view_pose``, the dataset's by default)."""
+    rig, view_pose = rig or reader.rig, view_pose or reader.view_pose
     masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in {c for _, c in views}}
     segments = slot_segments(reader.map) if slots and reader.layout.map.is_file() else torch.zeros(0, 2, 2)
     report = EvalReport()
     for frame, camera in views:
         gt = reader.image(camera, frame)
-        pred = render_view(scene, reader, frame, camera, response, backend).clamp(0.0, 1.0)
+        pred = render_view(scene, reader, frame, camera, response, backend, rig, view_pose).clamp(0.0, 1.0)
         mask = masks[camera]
         row: dict[str, Any] = {"frame": frame, "camera": camera,
                                "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask)}
         if len(segments):
             depth_path = reader.layout.depth(camera, frame)
             depth = reader.depth(camera, frame) if depth_path.is_file() else None
-            slot = slot_region_mask(rig.cameras[camera], reader.view_pose(camera, frame), segments, depth) & mask
+            slot = slot_region_mask(rig.cameras[camera], view_pose(camera, frame), segments, depth) & mask
             if slot.any():
                 row["slot_psnr"], row["slot_ssim"] = psnr(pred, gt, slot), ssim(pred, gt, slot)
             row["slot_pixels"] = int(slot.sum())
@@ -82,9 +94,28 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
     return report
 
 
+def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int, str]], response: Response,
+                   backend: str, steps: int | None) -> tuple[Rig, ViewPose | None, str]:
+    """The rig and test poses to score a bundle at, and a note saying how: a pose-refined bundle renders with its
+    refined rig at test poses aligned for ``steps`` (None: its run's ``pose_opt.test_steps``) with Gaussians frozen."""
+    refinement = bundle.meta.get(POSES_KEY)
+    if refinement is None:
+        return reader.rig, None, "off (the bundle was trained without pose refinement)"
+    cfg = PoseRefineConfig.model_validate(refinement["config"])
+    steps = cfg.test_steps if steps is None else steps
+    if steps == 0:
+        return bundle.rig, None, "off: test frames scored at their recorded poses with the refined rig"
+    aligned = align_poses(bundle.scene, reader, bundle.rig, views, response, cfg, steps, backend)
+    return bundle.rig, aligned.view_pose, (f"test-time pose alignment: each test {refinement['mode']} pose fitted "
+                                           f"for {steps} Adam steps with the Gaussians frozen, then scored")
+
+
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
-                    lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None) -> dict[str, Any]:
-    """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs."""
+                    lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None,
+                    align_steps: int | None = None) -> dict[str, Any]:
+    """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
+
+    A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off)."""
     from parksim.bundle import load
     from parksim.fileio import write_json
 
@@ -97,18 +128,21 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     if not frames:
         raise ValueError(f"{data_dir}: no test frames in split.json")
     views = [(f, c) for f in frames for c in reader.rig.names]
+    rig, view_pose, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
     (out_dir / "renders").mkdir(parents=True, exist_ok=True)
-    report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=out_dir / "renders")
+    report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=out_dir / "renders",
+                            rig=rig, view_pose=view_pose)
     if lpips is not None:
-        masks = {c: scene_mask(reader.rig.cameras[c], reader.rig.bev) for c in reader.rig.names}
+        masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}
         for row in report.views:
-            pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend).clamp(0, 1)
+            pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend, rig,
+                               view_pose).clamp(0, 1)
             row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]), masks[row["camera"]])
     summary = summarize(report, reader.rig.names, frames)
     summary["overall"]["lpips"] = report.mean("lpips")
     result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,
               "lpips": "computed" if lpips is not None else "not computed (no LPIPS weights given)",
-              **summary, "views": report.views}
+              "pose_alignment": alignment, **summary, "views": report.views}
     write_json(out_dir / "eval.json", result)
     (out_dir / "eval.md").write_text(_table(result, reader.rig.names))
     return result
@@ -126,4 +160,4 @@ def _table(result: dict[str, Any], cameras: list[str]) -> str:
     for name, s in [("all test views", o)] + [(c, result["per_camera"][c]) for c in cameras]:
         lines.append(f"| {name} | {_cell(s['psnr'], 2)} | {_cell(s['ssim'], 3)} | {_cell(s['slot_psnr'], 2)} | "
                      f"{_cell(s['slot_ssim'], 3)} |")
-    return "\n".join(lines) + f"\n\nLPIPS: {lpips}\n"
+    return "\n".join(lines) + f"\n\nLPIPS: {lpips}\n\nTest poses: {result['pose_alignment']}\n"

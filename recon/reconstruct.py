@@ -6,6 +6,8 @@ import datetime
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from parksim.bundle import Bundle, recorded_path, save
 from parksim.data import DatasetReader
 from parksim.fileio import atomic_write, remove_stale_temps
@@ -13,6 +15,7 @@ from parksim.fileio import atomic_write, remove_stale_temps
 from .checkpoint import checkpoint_path, load_checkpoint
 from .config import TrainConfig, dump_config, load_config
 from .plots import plot_metrics
+from .pose_refine import POSES_KEY
 from .trainer import METRICS_FILE, Trainer
 
 __all__ = ["reconstruct", "CONFIG_FILE"]
@@ -85,14 +88,20 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         return out_dir
     assert trainer.params is not None
     phase = "slot_aware" if trainer.slot_step else "photometric"
+    rig, poses, ego = reader.rig, None, reader.poses.numpy() if reader.has_vehicle_poses else None
+    if trainer.corrections is not None:
+        rig, poses = trainer.corrections.refined_rig(), trainer.corrections.refined_poses(reader.split["train"])
+        ego = ego if ego is None else np.array([f["T_world_vehicle"] for f in poses["frames"]])
     meta = {"dataset": str(Path(data_dir).resolve()), "phase": phase, "iterations": trainer.step,
             "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
-            "recorded_path": recorded_path(reader.poses.numpy()) if reader.has_vehicle_poses else None,
+            "recorded_path": recorded_path(ego) if ego is not None else None,
             "poses": "ego" if reader.has_vehicle_poses else "camera",
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    if trainer.corrections is not None:
+        meta[POSES_KEY] = {**trainer.corrections.summary(), "config": config.pose_opt.model_dump(mode="json")}
     world_map = reader.map if reader.layout.map.is_file() else None
-    save(out_dir, Bundle(trainer.params.snapshot().spatially_sorted(), reader.rig, world_map, meta))
+    save(out_dir, Bundle(trainer.params.snapshot().spatially_sorted(), rig, world_map, meta, poses=poses))
     if (out_dir / METRICS_FILE).is_file():
         plot_metrics(out_dir / METRICS_FILE, out_dir / "metrics.png")
     log(f"wrote {out_dir}: {len(trainer.params)} Gaussians after {trainer.step} iterations "

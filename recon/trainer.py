@@ -7,6 +7,8 @@ mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the den
 (``slot_aware.detector``, or one passed in; the ``direct_ipm`` variant needs none), the slot-aware phase follows:
 each iteration renders the four cameras of a random train frame and minimises ``recon.slot_aware``'s
 L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rate schedule (``schedule_iterations``).
+With pose refinement on (``pose_opt``, ``recon.pose_refine``) the photometric phase also trains a correction per
+frame's ego pose (per image for per-image datasets) and per camera's extrinsics; the slot-aware phase keeps them.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from .masks import scene_mask
 from .metrics import psnr
 from .metrics_log import METRICS_FILE, append_record, cut_back
 from .params import GaussianParams
+from .pose_refine import PoseCorrections, align_poses, refinement_enabled
 from .response import CameraResponse
 from .schedule import exp_decay, sh_degree_at
 from .slot_aware import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, spec_of
@@ -93,6 +96,11 @@ class Trainer:
         self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
         self._images: dict[tuple[int, str], Tensor] = {}
         self.slot_step = self._slot_step(detector)
+        self.corrections = (PoseCorrections(reader, self.rig, config.pose_opt, config.schedule_iterations)
+                            if refinement_enabled(config.pose_opt, reader.meta) else None)
+        if self.corrections is not None:
+            self.log(f"pose refinement on: a correction per {'image' if self.corrections.per_image else 'frame'}"
+                     f"{' and per camera extrinsics' if self.corrections.extrinsics_on else ''}")
 
     def _slot_step(self, detector: DMPRDetector | None) -> SlotAwareStep | None:
         """The slot-aware step when phase 2 is on: iterations > 0 and a detector where the variant needs one."""
@@ -142,7 +150,8 @@ class Trainer:
         (init, learning rates, photometric, densify) must equal this run's config, and phase 1 must be complete.
         """
         saved = parse_config(state["config"], f"{source} checkpoint config")
-        differ = [k for k in ("init", "lr", "photometric", "densify") if getattr(saved, k) != getattr(self.cfg, k)]
+        differ = [k for k in ("init", "lr", "photometric", "densify", "pose_opt")
+                  if getattr(saved, k) != getattr(self.cfg, k)]
         if differ:
             raise ValueError(f"{source}: its photometric phase was trained with other {', '.join(differ)} settings "
                              "than this config's")
@@ -159,6 +168,11 @@ class Trainer:
         self.generator.set_state(state["rng"])
         self.step, self.elapsed, self.init_note = int(state["iteration"]), float(state["elapsed"]), state["init"]
         self.cpu = float(state["cpu"])
+        if self.corrections is not None:
+            if "pose_opt" not in state:
+                raise ValueError("the checkpoint holds no pose corrections (written without pose refinement); "
+                                 "set pose_opt.enabled: false to continue it")
+            self.corrections.load_state_dict(state["pose_opt"])
 
     def state(self) -> dict[str, Any]:
         """Everything ``resume`` needs."""
@@ -167,7 +181,8 @@ class Trainer:
                 "params": {k: v.detach().clone() for k, v in self.params.tensors.items()},
                 "optimizer": self.params.optimizer.state_dict(), "response": self.response.state_dict(),
                 "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(),
-                "config": self.cfg.model_dump(mode="json")}
+                "config": self.cfg.model_dump(mode="json"),
+                **({"pose_opt": self.corrections.state_dict()} if self.corrections is not None else {})}
 
     def decode_inputs(self) -> None:
         """Decode every train and test image now, so a corrupt file fails before the run writes anything rather
@@ -190,12 +205,13 @@ class Trainer:
         batch = _Batch([], [], [], [])
         for i in picks:
             frame, camera = self.views[i]
-            pose = self.reader.view_pose(camera, frame)
+            pose = (self.reader.view_pose(camera, frame) if self.corrections is None
+                    else self.corrections.view_pose(camera, frame))
             image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend).images[camera]
             batch.preds.append(self.response(image, camera))
             batch.gts.append(self._image(frame, camera))
             batch.masks.append(self.masks[camera])
-            batch.infos.append(self._view_info(pose, camera))
+            batch.infos.append(self._view_info(pose.detach(), camera))
         return batch
 
     def _view_info(self, pose: Tensor, camera: str) -> ViewInfo:
@@ -207,13 +223,22 @@ class Trainer:
         assert self.params is not None and self.slot_step is not None
         train = self.reader.split["train"]
         frame = train[int(torch.randint(len(train), (1,), generator=self.generator))]
-        pose, names = self.reader.pose(frame), self.slot_step.ipm.cameras
+        pose, names = self._slot_pose(frame), self.slot_step.ipm.cameras
         gt = SlotFrame({c: self._image(frame, c) for c in names}, {c: self.masks[c][0, 0] for c in names},
                        frame_has_slots(self.reader, frame))
         terms = self.slot_step(self.params.scene(sh_degree), pose, gt)
         batch = _Batch(list(terms.images.values()), list(gt.images.values()), [self.masks[c] for c in names],
                        [self._view_info(pose, c) for c in names])
         return batch, terms
+
+    def _slot_pose(self, frame: int) -> Tensor:
+        """The ego pose the slot-aware phase renders at: the refined one, frozen with the refined rig, when refining."""
+        assert self.slot_step is not None
+        if self.corrections is None:
+            return self.reader.pose(frame)
+        if self.slot_step.rig is self.rig:
+            self.slot_step.rig = self.corrections.refined_rig()
+        return self.corrections.ego_pose(frame).detach()
 
     def _set_lr(self) -> float:
         lr = self.cfg.lr
@@ -244,6 +269,8 @@ class Trainer:
         self.params.optimizer.step()
         self.params.optimizer.zero_grad(set_to_none=True)
         self.response.step()
+        if self.corrections is not None:
+            self.corrections.step(self.step)
         self.step += 1
         refine = self.strategy.step_post_update(self.params, info)
         with torch.no_grad():
@@ -254,10 +281,18 @@ class Trainer:
 
     # --- the run ------------------------------------------------------------------------------
     def evaluate(self) -> dict[str, float | None]:
-        """Mean test-view PSNR/SSIM of the current parameters (no slot regions: cheap enough to run often)."""
+        """Mean test-view PSNR/SSIM of the current parameters (no slot regions: cheap enough to run often).
+
+        With pose refinement the test poses are first aligned (``pose_opt.test_steps``, Gaussians frozen)."""
         assert self.params is not None
-        report = evaluate_views(self.params.snapshot(), self.reader, self.test_views, self.response,
-                                self.cfg.run.backend, slots=False)
+        scene, rig, view_pose = self.params.snapshot(), self.rig, self.reader.view_pose
+        if self.corrections is not None:
+            rig = self.corrections.refined_rig()
+            view_pose = align_poses(scene, self.reader, rig, self.test_views, self.response, self.cfg.pose_opt,
+                                    self.cfg.pose_opt.test_steps, self.cfg.run.backend,
+                                    self.cfg.photometric.ssim_lambda).view_pose
+        report = evaluate_views(scene, self.reader, self.test_views, self.response, self.cfg.run.backend,
+                                slots=False, rig=rig, view_pose=view_pose)
         return {"test_psnr": report.mean("psnr"), "test_ssim": report.mean("ssim")}
 
     def truncate_metrics(self) -> None:
