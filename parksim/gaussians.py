@@ -172,7 +172,7 @@ class GaussianScene:
             raise PLYFormatError(f"{path}: missing field(s) {missing}")
         cols = {}
         for name in needed:
-            col = np.asarray(vertex[name], dtype=np.float64)
+            col = np.ascontiguousarray(vertex[name], dtype=np.float64)   # a float64 field of mixed records is strided
             bad = ~np.isfinite(col)
             if bad.any():
                 raise PLYFormatError(f"{path}: field {name!r} has {int(bad.sum())} non-finite value(s), "

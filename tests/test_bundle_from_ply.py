@@ -173,6 +173,23 @@ def test_frame_names_mean_what_the_docs_say(frame: str, tmp_path: Path) -> None:
     assert torch.allclose(eval_sh(got.sh, z[None], 1), torch.full((1, 3), 0.5, dtype=torch.float64), atol=1e-6)
 
 
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "ascii"])
+def test_other_writers_layouts_read_the_same(text: bool, tmp_path: Path) -> None:
+    """Exporters differ: double properties, no normals, extra uchar colours (strided float64 columns), ASCII."""
+    scene = GaussianScene.random(50, sh_degree=2, seed=1)
+    scene.save_ply(tmp_path / "inria.ply")
+    v = PlyData.read(str(tmp_path / "inria.ply"))["vertex"].data
+    names = [n for n in v.dtype.names if n not in ("nx", "ny", "nz")]
+    data = np.empty(len(v), dtype=[(n, "f8") for n in names] + [("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for n in names:
+        data[n] = v[n]
+    data["red"] = data["green"] = data["blue"] = 200
+    PlyData([PlyElement.describe(data, "vertex")], text=text).write(str(tmp_path / "other.ply"))
+    want, got = (read_ply(tmp_path / f, "opengl") for f in ("inria.ply", "other.ply"))
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
 def test_transform_argument_forms(tmp_path: Path) -> None:
     numbers = [float(v) for v in SIMILARITY.ravel()]
     (tmp_path / "t.json").write_text(json.dumps(SIMILARITY.tolist()))
