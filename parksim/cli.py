@@ -20,8 +20,11 @@ __all__ = ["COMMANDS", "build_parser", "describe", "main"]
 prefer_sleeping_omp_threads()   # before any subcommand imports torch
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "imports", "export", "reconstruct", "batch", "eval", "colmap", "detector", "render",
+COMMANDS = ["demo", "synth", "import", "export", "reconstruct", "batch", "eval", "colmap", "detector", "render",
             "ipm", "serve", "bench", "compact", "bundle"]
+
+_MODULES = {"import": "imports"}
+"""Commands whose module has another name (``import`` is a Python keyword)."""
 
 _OS_ERRORS = (FileNotFoundError, FileExistsError, PermissionError, IsADirectoryError, NotADirectoryError)
 _OS_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.ENAMETOOLONG, errno.ENOTEMPTY,
@@ -38,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMANDS:
-        module = importlib.import_module(f"parksim.commands.{name}")
+        module = importlib.import_module(f"parksim.commands.{_MODULES.get(name, name)}")
         p = module.add_parser(sub)
         p.set_defaults(_run=module.run)
     return parser

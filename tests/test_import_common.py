@@ -107,6 +107,8 @@ def test_fit_rig_recovers_rig_and_ego_poses() -> None:
     assert fit.poses is not None
     np.testing.assert_allclose(fit.poses, ego, rtol=0, atol=1e-12)
     assert fit_rig(half, rig.names, known=rig, scale=3.0).scale_source == "--scale"
+    rec.rig = avm_rig(W, H, bev_px=77)   # an importer knows no BEV: the known rig's is kept
+    assert fit.apply(rec).rig.bev == rig.bev
     # Without a known rig: same relative rig, a vehicle frame of its own (z up within the cameras' mean up).
     free = fit_rig(rec.camera_poses, rig.names)
     assert free.consistent and free.scale == 1.0 and "as given" in free.scale_source

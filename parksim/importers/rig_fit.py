@@ -17,7 +17,7 @@ from itertools import combinations
 import numpy as np
 import torch
 
-from ..rig import Rig, RigCamera
+from ..rig import BEVSpec, Rig, RigCamera
 from .recording import Recording, RecordingError
 
 __all__ = ["RigFit", "fit_rig", "mean_pose", "TOLERANCE_M", "TOLERANCE_DEG"]
@@ -61,9 +61,11 @@ class RigFit:
     poses: np.ndarray | None
     vehicle_frame: str
     message: str
+    bev: BEVSpec | None = None
 
     def apply(self, rec: Recording) -> Recording:
-        """``rec`` at metric scale, with the recovered rig and ego poses when consistent (camera poses kept)."""
+        """``rec`` at metric scale, with the recovered rig (and the known rig's BEV) and ego poses when consistent
+        (camera poses kept)."""
         assert rec.camera_poses is not None
         s = self.scale
         camera_poses = [{c: _scaled(T, s) for c, T in p.items()} for p in rec.camera_poses]
@@ -71,7 +73,7 @@ class RigFit:
         rig, poses = rec.rig, None
         if self.consistent:
             rig = Rig({c: RigCamera(c, cam.model, torch.from_numpy(self.T_vehicle_camera[c]))
-                       for c, cam in rec.rig.cameras.items()}, rec.rig.bev)
+                       for c, cam in rec.rig.cameras.items()}, self.bev or rec.rig.bev)
             poses = self.poses
         notes = {**rec.notes, "scale": s, "scale_source": self.scale_source, "rig_consistent": self.consistent,
                  "rig_spread_m": self.spread_m, "rig_spread_deg": self.spread_deg,
@@ -171,4 +173,5 @@ def fit_rig(camera_poses: list[dict[str, np.ndarray]], names: Sequence[str], kno
     else:
         message = (f"not consistent with a fixed rig (spread {spread_m:.3g} m, {spread_deg:.3g} deg beyond "
                    f"{tol_m} m, {tol_deg} deg): per-image poses only, the scene renders at camera poses")
-    return RigFit(consistent, s, source, spread_m, spread_deg, T_vc, ego, frame, message)
+    return RigFit(consistent, s, source, spread_m, spread_deg, T_vc, ego, frame, message,
+                  None if known is None else known.bev)
