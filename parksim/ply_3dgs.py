@@ -42,9 +42,10 @@ def similarity_parts(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     ``ValueError`` (one line) unless ``T`` is a finite 4x4 similarity within ``ORTHOGONAL_TOL``.
     """
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"a transform must be a finite 4x4 matrix, got shape {T.shape}"
-                         + ("" if T.shape != (4, 4) else " with non-finite entries"))
+    if T.shape != (4, 4):
+        raise ValueError(f"a transform must be a 4x4 matrix, got shape {T.shape}")
+    if not np.isfinite(T).all():
+        raise ValueError(f"a transform must be finite, got {T.tolist()}")
     if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError(f"a transform's last row must be 0 0 0 1, got {T[3].tolist()}")
     A = T[:3, :3]
@@ -75,13 +76,13 @@ def transform_scene(scene: GaussianScene, T: np.ndarray) -> GaussianScene:
     """
     s, Q, t = similarity_parts(T)
     f64 = scene.to(torch.float64)
-    Qt = torch.from_numpy(Q)
+    Qt, t_ = (torch.from_numpy(v).to(f64.means.device) for v in (Q, t))
     turn = quaternion_from_rotation(Qt * float(np.sign(np.linalg.det(Q))))
     w0, v0 = turn[0], turn[1:]
     w, v = f64.quats[:, 0], f64.quats[:, 1:]
     quats = torch.cat([(w0 * w - v @ v0)[:, None],
                        w0 * v + w[:, None] * v0 + torch.linalg.cross(v0.expand_as(v), v)], dim=1)
-    out = GaussianScene(s * f64.means @ Qt.T + torch.from_numpy(t), quats, f64.log_scales + math.log(s),
+    out = GaussianScene(s * f64.means @ Qt.T + t_, quats, f64.log_scales + math.log(s),
                         f64.opacity_logits, rotate_sh(f64.sh, Q), scene.sh_degree)
     return out.to(scene.means.dtype)
 
