@@ -47,7 +47,8 @@ def camera_poses(reader: DatasetReader) -> dict[tuple[int, str], np.ndarray]:
 def write_model(reader: DatasetReader, out: Path, scale: float = 1.0, skip: tuple[tuple[int, str], ...] = (),
                 camera_model: str = "OPENCV_FISHEYE") -> Path:
     """A pycolmap model of the dataset (translations and points times ``scale``), as text in out/text and
-    binary in out/bin; camera ids follow the rig's order, images are named ``<camera>/<frame>.png``."""
+    binary in out/bin; camera ids follow the rig's order, images are named ``<camera>/<frame>.png``, and
+    point j is seen by images j + 1 and j + 2."""
     rec = pycolmap.Reconstruction()
     for i, name in enumerate(reader.rig.names, start=1):
         m = reader.rig.cameras[name].model
@@ -61,13 +62,17 @@ def write_model(reader: DatasetReader, out: Path, scale: float = 1.0, skip: tupl
             continue
         T_cw = np.linalg.inv(T_wc)
         image = pycolmap.Image(name=f"{c}/{frame_name(f)}.png", camera_id=reader.rig.names.index(c) + 1,
-                               image_id=image_id)
+                               image_id=image_id, points2D=pycolmap.Point2DList(
+                                   [pycolmap.Point2D(np.array([10.0 + k, 20.0])) for k in range(2)]))
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(T_cw[:3, :3]),
                                                                  scale * T_cw[:3, 3]))
         image_id += 1
     xyz, rgb = reader.points
-    for p, colour in zip(xyz[:POINTS].astype(np.float64), rgb[:POINTS]):
-        rec.add_point3D(scale * p, pycolmap.Track(), colour)
+    for j, (p, colour) in enumerate(zip(xyz[:POINTS].astype(np.float64), rgb[:POINTS])):
+        track = pycolmap.Track()  # observations fill the POINTS2D and TRACK records the reader must step over
+        track.add_element(j + 1, 0)
+        track.add_element(j + 2, 1)
+        rec.add_point3D(scale * p, track, colour)
     for sub, write in (("text", rec.write_text), ("bin", rec.write_binary)):
         (out / sub).mkdir(parents=True)
         write(str(out / sub))
@@ -204,6 +209,7 @@ def test_top_level_images_are_named_after_their_colmap_camera(tmp_path: Path) ->
         cv2.imwrite(str(tmp_path / name), np.zeros((6, 8, 3), np.uint8))
     rec = recording_from_model(read_model(tmp_path / "sparse"), tmp_path)
     assert rec.rig.names == ["cam2", "cam7"] and rec.frames == [12]
+    assert rec.camera_poses is not None and rec.points is not None
     pin = rec.rig.cameras["cam7"].model.to_dict()
     assert (pin["model"], pin["fx"], pin["fy"], pin["cx"], pin["cy"]) == ("pinhole", 10, 11, 4.0, 3.0)
     simple = rec.rig.cameras["cam2"].model.to_dict()

@@ -366,6 +366,8 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
 
     from ..rig import BEVSpec, Rig, RigCamera
 
+    if not model.images:
+        raise ColmapError(f"{model.path}: the model has no images")
     names = _camera_names(model)
     camera_of = {names[im.image_id]: model.cameras[im.camera_id] for im in model.images.values()}
     order = sorted(camera_of, key=lambda n: (camera_of[n].camera_id, n))
@@ -411,7 +413,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The model folder, ``--images`` and ``--fps``."""
     from ..commands.argtypes import number
 
-    p.add_argument("model", type=Path, metavar="MODEL", help="COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)")
+    p.add_argument("model", type=Path, metavar="MODEL",
+                   help="COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)")
     p.add_argument("--images", type=Path, metavar="DIR",
                    help="folder the model's image names are relative to (default: images/ beside MODEL, else "
                         "beside its parent)")
