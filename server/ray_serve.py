@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import ray
 from fastapi import FastAPI
@@ -21,7 +23,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from .app import create_app
 from .settings import Settings
 
-__all__ = ["SimReplica", "PicklableBodies", "Scaling", "application", "start", "stop", "APP_NAME", "HEADROOM"]
+__all__ = ["SimReplica", "PicklableBodies", "Scaling", "application", "start", "stop", "check_reachable", "APP_NAME",
+           "HEADROOM", "QUIET"]
 
 APP_NAME = "parksim"
 QUIET = {"log_level": "WARNING", "enable_access_log": False}
@@ -68,10 +71,10 @@ class Scaling:
     autoscale: tuple[int, int] | None = None
     cpus: int = 1
 
-    def options(self, settings: Settings) -> dict[str, object]:
+    def options(self, settings: Settings) -> dict[str, Any]:
         """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs and thread counts per replica."""
         threads = str(self.cpus)
-        out: dict[str, object] = {
+        out: dict[str, Any] = {
             "ray_actor_options": {"num_cpus": self.cpus,
                                   "runtime_env": {"env_vars": {"OMP_NUM_THREADS": threads,
                                                                "NUMBA_NUM_THREADS": threads}}},
@@ -88,7 +91,7 @@ class Scaling:
 
 def application(scenes: str | Path, settings: Settings, scaling: Scaling) -> Application:
     """The Serve application of ``SimReplica`` over the absolute path of ``scenes``."""
-    deployment = serve.deployment(SimReplica, name="SimReplica").options(**scaling.options(settings))
+    deployment = serve.deployment(name="SimReplica")(SimReplica).options(**scaling.options(settings))
     return deployment.bind(str(Path(scenes).resolve()), settings)
 
 
@@ -96,21 +99,37 @@ def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, p
           address: str | None = None) -> None:
     """Start Ray on this machine's cores, or join the cluster at ``address``; start Serve's HTTP proxy on
     ``host:port`` and deploy. Returns once every replica has loaded the scenes; ``ValueError`` with one line when
-    the cluster cannot be reached or a replica fails to start."""
+    the cluster cannot be reached or a replica fails to start, with everything started here taken down again."""
     logging.getLogger("ray.serve").setLevel(logging.WARNING)
-    quiet = {"logging_level": "ERROR", "log_to_driver": False}   # replica logs: Ray's session log folder
-    try:
-        if address is None:
-            ray.init(num_cpus=os.cpu_count() or 1, include_dashboard=False, **quiet)
-        else:
-            ray.init(address=address, **quiet)
+    if address is not None:
+        check_reachable(address)
+    try:   # replica logs stay in Ray's session log folder (log_to_driver=False)
+        ray.init(address=address, num_cpus=(os.cpu_count() or 1) if address is None else None,
+                 include_dashboard=False if address is None else None, logging_level=logging.ERROR,
+                 log_to_driver=False)
     except ConnectionError as e:
         raise ValueError(f"cannot join the Ray cluster at {address}: {str(e).splitlines()[0]}") from None
-    serve.start(http_options={"host": host, "port": port}, logging_config=QUIET)
     try:
-        serve.run(application(scenes, settings, scaling), name=APP_NAME, route_prefix="/", logging_config=QUIET)
-    except RuntimeError:
-        raise ValueError(f"the Ray Serve replicas did not start: {_startup_error()}") from None
+        serve.start(http_options={"host": host, "port": port}, logging_config=QUIET)
+        try:
+            serve.run(application(scenes, settings, scaling), name=APP_NAME, route_prefix="/", logging_config=QUIET)
+        except RuntimeError:
+            raise ValueError(f"the Ray Serve replicas did not start: {_startup_error()}") from None
+    except BaseException:
+        stop(own_ray=address is None)
+        raise
+
+
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """``ValueError`` when a ``HOST:PORT`` cluster address does not accept a TCP connection within ``timeout_s``
+    (Ray itself keeps retrying an unreachable head for minutes); other address forms are left to Ray."""
+    host, _, port = address.rpartition(":")
+    if not (host and port.isdigit()) or "://" in address:
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout_s).close()
+    except OSError as e:
+        raise ValueError(f"cannot reach the Ray cluster at {address}: {e.strerror or e}") from None
 
 
 def _startup_error() -> str:
@@ -122,9 +141,7 @@ def _startup_error() -> str:
 
 def stop(own_ray: bool) -> None:
     """Take the app down: all of Serve and Ray when this process started Ray (``own_ray``), else only this app
-    (other Serve apps on the cluster keep running) before disconnecting. Does nothing when Ray is not up."""
-    if not ray.is_initialized():
-        return
+    (other Serve apps on the cluster keep running) before disconnecting."""
     if own_ray:
         serve.shutdown()
     else:

@@ -159,6 +159,15 @@ def test_without_ray_the_command_says_what_to_install(bundle_dir):
                      "(pip install 'parksim[ray]')"]
 
 
+def test_an_unreachable_cluster_is_one_line(bundle_dir):
+    port = free_port()   # nothing listens there
+    done = subprocess.run([PARKSIM, "serve", "--ray", "--address", f"127.0.0.1:{port}", "--scenes",
+                           str(bundle_dir.parent), "--port", str(free_port())], capture_output=True, text=True,
+                          timeout=120)
+    assert (done.returncode, done.stderr) == (2, f"parksim serve: error: cannot reach the Ray cluster at "
+                                                 f"127.0.0.1:{port}: Connection refused\n")
+
+
 def _ok(response: httpx.Response) -> httpx.Response:
     assert response.status_code == 200, response.text
     return response

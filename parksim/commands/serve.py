@@ -40,8 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                                "the same API from Ray Serve replicas, each loading the scenes itself (so --scenes "
                                "must be readable at the same path on every node); the limits above are per replica")
     ray.add_argument("--ray", action="store_true", help="serve through Ray Serve instead of one process")
-    ray.add_argument("--address", help="join this Ray cluster (e.g. ray://head:10001 or head:6379); default: start "
-                                       "a local Ray instance on this machine's cores")
+    ray.add_argument("--address", metavar="HEAD:PORT",
+                     help="join the Ray cluster with this head (as `ray start --head` prints it); default: start a "
+                          "local Ray instance on this machine's cores")
     count = ray.add_mutually_exclusive_group()
     count.add_argument("--replicas", type=integer(1), help="fixed number of replicas (default 1)")
     count.add_argument("--autoscale", type=_span, metavar="MIN,MAX",
@@ -135,8 +136,8 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
         sock.close()
     scaling = ray_serve.Scaling(args.replicas or 1, args.autoscale, args.replica_cpus or 1)
     signal.signal(signal.SIGTERM, signal.default_int_handler)   # stop as on Ctrl-C, taking Serve down
+    ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
     try:
-        ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
         size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
         print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
               "(viewer at /, docs at /docs)", flush=True)
