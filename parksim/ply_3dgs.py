@@ -2,14 +2,17 @@
 
 The file layout is ParkSim's own (``GaussianScene.load_ply`` / ``save_ply``); what differs is the world frame.
 ``FRAMES`` names the conventions a foreign scene's axes follow; ``T_parksim_ply`` composes one with a
-similarity (rotation or reflection, uniform scale, translation) applied after it, and ``transform_scene`` moves
+similarity (rotation or reflection, uniform scale, translation) applied after it, and with the inverse of the
+transform nerfstudio's dataparser applied before training (``dataparser_transform``); ``transform_scene`` moves
 every Gaussian by such a transform: means, rotations, log-scales and the degree 1-3 SH coefficients together.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -18,7 +21,8 @@ from .gaussians import GaussianScene, PLYFormatError
 from .geometry import quaternion_from_rotation
 from .sh_rotation import rotate_sh
 
-__all__ = ["FRAMES", "T_parksim_ply", "similarity_parts", "transform_scene", "read_ply", "write_ply"]
+__all__ = ["FRAMES", "T_parksim_ply", "dataparser_transform", "similarity_parts", "transform_scene", "read_ply",
+           "write_ply"]
 
 FRAMES: dict[str, np.ndarray] = {
     "parksim": np.eye(3),
@@ -58,13 +62,36 @@ def similarity_parts(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return s, u @ vt, T[:3, 3].copy()
 
 
-def T_parksim_ply(frame: str, transform: np.ndarray | None = None) -> np.ndarray:
-    """The 4x4 from PLY world coordinates to ParkSim's: ``frame``'s axis change, then ``transform`` (default I)."""
+def dataparser_transform(data: Mapping[str, Any], source: str = "dataparser transforms") -> np.ndarray:
+    """The 4x4 ``D`` of a nerfstudio ``dataparser_transforms.json`` (``{"transform": 3x4, "scale": s}``).
+
+    nerfstudio trains in ``p_ns = s (A p + b)`` of the world its dataparser read (``[A | b]`` = ``transform``,
+    ``applied_transform`` included), and ``ns-export gaussian-splat`` writes that world: ``D`` maps into it.
+    """
+    try:
+        Ab = np.asarray(data["transform"], dtype=np.float64)
+        scale = float(data["scale"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{source}: not a nerfstudio dataparser_transforms.json (needs 'transform' 3x4 and "
+                         f"'scale'; {type(e).__name__}: {e})") from None
+    if Ab.shape != (3, 4) or not np.isfinite(Ab).all() or not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"{source}: 'transform' must be a finite 3x4 and 'scale' a positive number, got shape "
+                         f"{Ab.shape} and scale {scale}")
+    D = np.eye(4)
+    D[:3] = scale * Ab
+    return D
+
+
+def T_parksim_ply(frame: str = "parksim", transform: np.ndarray | None = None,
+                  dataparser: np.ndarray | None = None) -> np.ndarray:
+    """The 4x4 from PLY world coordinates to ParkSim's: undo ``dataparser`` (a nerfstudio ``D``), change the
+    axes of ``frame``, then apply ``transform``: ``transform @ F @ inv(dataparser)`` (None: identity)."""
     if frame not in FRAMES:
         raise ValueError(f"unknown frame {frame!r}; one of {sorted(FRAMES)}")
     F = np.eye(4)
     F[:3, :3] = FRAMES[frame]
-    return (np.eye(4) if transform is None else np.asarray(transform, dtype=np.float64)) @ F
+    T = np.eye(4) if transform is None else np.asarray(transform, dtype=np.float64)
+    return T @ F @ (np.eye(4) if dataparser is None else np.linalg.inv(dataparser))
 
 
 def transform_scene(scene: GaussianScene, T: np.ndarray) -> GaussianScene:
@@ -87,18 +114,16 @@ def transform_scene(scene: GaussianScene, T: np.ndarray) -> GaussianScene:
     return out.to(scene.means.dtype)
 
 
-def read_ply(path: str | Path, frame: str = "parksim", transform: np.ndarray | None = None,
-             dtype: torch.dtype = torch.float32) -> GaussianScene:
-    """A third-party INRIA 3DGS PLY (SH degree 0-3) as a ParkSim scene: ``T_parksim_ply(frame, transform)``
-    applied to it in float64. ``PLYFormatError`` names a missing property or a non-finite value."""
+def read_ply(path: str | Path, T: np.ndarray | None = None, dtype: torch.dtype = torch.float32) -> GaussianScene:
+    """A third-party INRIA 3DGS PLY (SH degree 0-3) as a ParkSim scene, moved by ``T`` (``T_parksim_ply(...)``;
+    None: as stored) in float64. ``PLYFormatError`` names a missing property or a non-finite value."""
     scene = GaussianScene.load_ply(path, dtype=torch.float64)
     if len(scene) == 0:
         raise PLYFormatError(f"{path}: holds no Gaussians")
-    return transform_scene(scene, T_parksim_ply(frame, transform)).to(dtype)
+    return (scene if T is None else transform_scene(scene, T)).to(dtype)
 
 
-def write_ply(scene: GaussianScene, path: str | Path, frame: str = "parksim",
-              transform: np.ndarray | None = None) -> None:
+def write_ply(scene: GaussianScene, path: str | Path, T: np.ndarray | None = None) -> None:
     """Write ``scene`` as an INRIA 3DGS PLY in a foreign world frame: the inverse of ``read_ply`` with the same
-    ``frame`` and ``transform``."""
-    transform_scene(scene, np.linalg.inv(T_parksim_ply(frame, transform))).save_ply(path)
+    ``T``."""
+    (scene if T is None else transform_scene(scene, np.linalg.inv(T))).save_ply(path)

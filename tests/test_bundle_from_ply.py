@@ -19,7 +19,7 @@ from parksim.env import ParkingEnv
 from parksim.gaussians import GaussianScene
 from parksim.geometry import quaternion_from_rotation, rotation_from_quaternion
 from parksim.imageio import read_image, to_uint8
-from parksim.ply_3dgs import FRAMES, read_ply, similarity_parts, transform_scene, write_ply
+from parksim.ply_3dgs import FRAMES, T_parksim_ply, read_ply, similarity_parts, transform_scene, write_ply
 from parksim.render import render
 from parksim.render.sh import eval_sh, sh_basis
 from parksim.sh_rotation import rotate_sh
@@ -121,10 +121,11 @@ def test_foreign_frame_round_trip_keeps_gaussians_and_renders(case: str, garage,
     frame, T = CASES[case]
     scene, _, rig, pose = garage
     path = tmp_path / "foreign.ply"
-    write_ply(scene, path, frame, T)
+    M = T_parksim_ply(frame, T)
+    write_ply(scene, path, M)
     stored = GaussianScene.load_ply(path, dtype=torch.float64)   # the float32 values in the foreign frame
     assert (stored.means - scene.means).abs().max() > 0.5         # it really is another frame
-    back = read_ply(path, frame, T, dtype=torch.float64)
+    back = read_ply(path, M, dtype=torch.float64)
     s = 1.0 if T is None else similarity_parts(T)[0]
     # rounding to float32 moved each stored value by <= 1/2 ulp; the similarity scales positions by s, and its
     # orthogonal parts spread a vector's rounding over its components (at most sqrt(2l+1)/2 ulp for an SH band)
@@ -135,7 +136,7 @@ def test_foreign_frame_round_trip_keeps_gaussians_and_renders(case: str, garage,
     sign = torch.sign((back.quats * scene.quats).sum(dim=1, keepdim=True))   # q and -q are the same rotation
     assert (sign * back.quats - scene.quats).abs().max() <= f32_tol(stored.quats, ulps=1)
     want = render(scene.to(torch.float32), rig, pose).images
-    _same_images(render(read_ply(path, frame, T), rig, pose).images, want)
+    _same_images(render(read_ply(path, M), rig, pose).images, want)
 
 
 # A Gaussian 5 m ahead and 1 m up, flat across the forward axis, brightest when seen looking forward:
@@ -161,7 +162,7 @@ def test_frame_names_mean_what_the_docs_say(frame: str, tmp_path: Path) -> None:
                         torch.tensor([[math.log(0.5), math.log(0.5), math.log(0.01)]], dtype=torch.float64),
                         torch.tensor([2.0], dtype=torch.float64), sh, 1)
     ply.save_ply(tmp_path / "one.ply")
-    got = read_ply(tmp_path / "one.ply", frame, dtype=torch.float64)
+    got = read_ply(tmp_path / "one.ply", T_parksim_ply(frame), dtype=torch.float64)
     assert torch.allclose(got.means[0], torch.tensor([5.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)
     thin_axis = rotation_from_quaternion(got.quats)[0][:, 2]
     assert torch.allclose(thin_axis.abs(), torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-6)
@@ -185,7 +186,7 @@ def test_other_writers_layouts_read_the_same(text: bool, tmp_path: Path) -> None
         data[n] = v[n]
     data["red"] = data["green"] = data["blue"] = 200
     PlyData([PlyElement.describe(data, "vertex")], text=text).write(str(tmp_path / "other.ply"))
-    want, got = (read_ply(tmp_path / f, "opengl") for f in ("inria.ply", "other.ply"))
+    want, got = (read_ply(tmp_path / f, T_parksim_ply("opengl")) for f in ("inria.ply", "other.ply"))
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         assert torch.equal(getattr(got, name), getattr(want, name)), name
 
@@ -218,7 +219,7 @@ def _cli(capsys, *argv: str) -> tuple[int, str, str]:
 
 def test_cli_bundle_loads_renders_and_serves(garage, tmp_path: Path, capsys) -> None:
     scene, world_map, rig, pose = garage
-    write_ply(scene, tmp_path / "scene.ply", "colmap", SIMILARITY)
+    write_ply(scene, tmp_path / "scene.ply", T_parksim_ply("colmap", SIMILARITY))
     (tmp_path / "data").mkdir()
     rig.save(tmp_path / "data" / "rig.json")
     (tmp_path / "data" / "map.json").write_text(json.dumps(world_map))
@@ -237,6 +238,30 @@ def test_cli_bundle_loads_renders_and_serves(garage, tmp_path: Path, capsys) -> 
     assert (rc, err) == (0, "")
     for name, image in frame.images.items():
         assert np.array_equal(to_uint8(read_image(tmp_path / "png" / f"{name}.png")), image), name
+
+
+def test_cli_undoes_nerfstudio_dataparser_transform(garage, tmp_path: Path, capsys) -> None:
+    """A splatfacto export lives in p_ns = s (A p + b) of the world nerfstudio read (here COLMAP axes)."""
+    scene, _, rig, pose = garage
+    A, b, s = ROTATION, np.array([0.3, -1.0, 2.0]), 0.15
+    (tmp_path / "dataparser_transforms.json").write_text(
+        json.dumps({"transform": np.concatenate([A, b[:, None]], 1).tolist(), "scale": s}))
+    to_colmap = np.eye(4)
+    to_colmap[:3, :3] = FRAMES["colmap"].T
+    transform_scene(transform_scene(scene, to_colmap), _similarity(s, A, tuple(s * b))).save_ply(tmp_path / "ns.ply")
+    rig.save(tmp_path / "rig.json")
+    out = tmp_path / "bundle"
+    rc, _, err = _cli(capsys, "bundle", "from-ply", str(tmp_path / "ns.ply"), "--rig", str(tmp_path / "rig.json"),
+                      "-o", str(out), "--frame", "colmap", "--dataparser-transforms",
+                      str(tmp_path / "dataparser_transforms.json"))
+    assert (rc, err) == (0, "")
+    got = bundle_io.load(out)
+    stored = GaussianScene.load_ply(tmp_path / "ns.ply", dtype=torch.float64)
+    sorted_means = np.sort(got.scene.means.double().numpy(), axis=0)   # the bundle is in Morton order
+    want = np.sort(scene.means.numpy(), axis=0)
+    # the stored float32 rounding, scaled back by 1/s, then rounded to float32 again in the bundle
+    assert np.abs(sorted_means - want).max() <= f32_tol(stored.means, ulps=1) / s + f32_tol(want, ulps=0.5)
+    _same_images(render(got.scene, got.rig, pose).images, render(scene.to(torch.float32), rig, pose).images)
 
 
 def test_cli_bundle_without_map_serves_and_says_so(garage, tmp_path: Path, capsys) -> None:
@@ -288,6 +313,8 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(garage, tmp_path: Path,
         "not a ply": ([str(tmp_path / "empty.ply")], "not a readable PLY"),
         "shear": ([str(good), "--transform", *"1 0.2 0 0 0 1 0 0 0 0 1 0 0 0 0 1".split()], "similarity"),
         "rig": ([str(good), "--rig", str(tmp_path / "nope.json")], "rig file not found"),
+        "dataparser": ([str(good), "--dataparser-transforms", str(tmp_path / "rig.json")],
+                       "not a nerfstudio dataparser_transforms.json"),
     }
     for name, (args, message) in cases.items():
         argv = ["bundle", "from-ply", *args, "-o", str(tmp_path / "out")]

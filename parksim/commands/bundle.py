@@ -17,7 +17,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     ply = modes.add_parser(
         "from-ply", help="bundle an INRIA 3DGS PLY (graphdeco, gsplat, nerfstudio exports) with a rig",
         description="Read an INRIA 3DGS PLY (SH degree 0-3), move it into ParkSim's world frame (z up, floor at "
-                    "z = 0: --frame names the PLY's axis convention, --transform a similarity applied after it) "
+                    "z = 0: --dataparser-transforms undoes nerfstudio's normalisation, --frame names the axis "
+                    "convention of the world left, --transform is a similarity applied after it) "
                     "and write OUTPUT as a scene bundle: gaussians.ply, rig.json, bundle.json, and map.json "
                     "with --map. OUTPUT appears only when complete. See docs/bundle.md.")
     ply.add_argument("ply", type=Path, help="the 3DGS PLY (graphdeco point_cloud.ply, a gsplat or splatfacto export)")
@@ -28,6 +29,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                           "y down, z forward; opengl x right, y up, z backward")
     ply.add_argument("--transform", nargs="+", metavar="T",
                      help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major")
+    ply.add_argument("--dataparser-transforms", type=Path, metavar="JSON",
+                     help="nerfstudio's dataparser_transforms.json of the run that trained the PLY: undone first, "
+                          "so --frame describes the world nerfstudio was given")
     ply.add_argument("--map", type=Path, help="map.json (or a dataset folder's) in the same world frame")
     ply.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
     return p
@@ -67,20 +71,17 @@ def read_transform(tokens: list[str]) -> Any:
     return values.reshape(4, 4)
 
 
-def _read_map(path: Path) -> dict[str, Any]:
-    """The JSON object in a map.json (or a dataset folder's map.json)."""
+def _read_object(path: Path, option: str) -> dict[str, Any]:
+    """The JSON object in the file ``path`` given to ``option``."""
     import json
 
-    from ..data import DatasetLayout
-
-    path = DatasetLayout(path).map if path.is_dir() else path
     try:
-        world_map = json.loads(path.read_text())
+        data = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise ValueError(f"--map {path}: unreadable JSON ({' '.join(str(e).split())})") from None
-    if not isinstance(world_map, dict):
-        raise ValueError(f"--map {path}: a map is a JSON object, got {type(world_map).__name__}")
-    return world_map
+        raise ValueError(f"{option} {path}: unreadable JSON ({' '.join(str(e).split())})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{option} {path}: expected a JSON object, got {type(data).__name__}")
+    return data
 
 
 def run(args: argparse.Namespace) -> int:
@@ -92,22 +93,27 @@ def run(args: argparse.Namespace) -> int:
     from .. import bundle as bundle_io
     from ..data import DatasetLayout
     from ..fileio import atomic_directory
-    from ..ply_3dgs import T_parksim_ply, read_ply, similarity_parts
+    from ..ply_3dgs import T_parksim_ply, dataparser_transform, read_ply, similarity_parts
     from ..rig import Rig
     from .outputs import check_output_folder
 
     transform = read_transform(args.transform) if args.transform else None
     if transform is not None:
         similarity_parts(transform)
+    dataparser = (None if args.dataparser_transforms is None else dataparser_transform(
+        _read_object(args.dataparser_transforms, "--dataparser-transforms"), str(args.dataparser_transforms)))
+    T = T_parksim_ply(args.frame, transform, dataparser)
+    similarity_parts(T)
     check_output_folder(args.output, overwrite=args.overwrite)
     rig = Rig.load(DatasetLayout(args.rig).rig if args.rig.is_dir() else args.rig)
-    world_map = _read_map(args.map) if args.map else None
-    scene = read_ply(args.ply, args.frame, transform)
-    T = T_parksim_ply(args.frame, transform)
+    world_map = (_read_object(DatasetLayout(args.map).map if args.map.is_dir() else args.map, "--map")
+                 if args.map else None)
+    scene = read_ply(args.ply, T)
     meta = {"source": f"third-party 3DGS PLY {args.ply.resolve()}", "gaussians": len(scene),
             "sh_degree": scene.sh_degree,
             "ply_import": {"ply": str(args.ply.resolve()), "frame": args.frame,
                            "transform": None if transform is None else transform.tolist(),
+                           "dataparser_transform": None if dataparser is None else dataparser.tolist(),
                            "T_parksim_ply": T.tolist()},
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     bundle = bundle_io.Bundle(scene.spatially_sorted(), rig, world_map, meta)
