@@ -52,7 +52,8 @@ def run_sfm(data_dir: str | Path, work_dir: str | Path, cameras: list[str] | Non
     frames = reader.frames[::frame_stride]
     for name in cameras or reader.rig.names:
         m = reader.rig.cameras[name].model
-        params = [float(m.fx), float(m.fy), float(m.cx), float(m.cy), *[float(k) for k in m.to_dict()["k"]]]
+        # COLMAP's first pixel centre is (0.5, 0.5), ParkSim's (0, 0) (parksim.importers.colmap reads it back).
+        params = [float(m.fx), float(m.fy), float(m.cx) + 0.5, float(m.cy) + 0.5, *[float(k) for k in m.to_dict()["k"]]]
         options = pycolmap.ImageReaderOptions()
         options.camera_model = "OPENCV_FISHEYE"
         options.camera_params = ",".join(f"{p:.10g}" for p in params)
