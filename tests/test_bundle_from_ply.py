@@ -12,7 +12,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from parksim import bundle as bundle_io
-from parksim.cli import main
+from parksim.cli import build_parser, main
 from parksim.client import LocalSim
 from parksim.commands.bundle import read_transform
 from parksim.env import ParkingEnv
@@ -118,6 +118,7 @@ def _same_images(got: dict[str, torch.Tensor], want: dict[str, torch.Tensor]) ->
 
 @pytest.mark.parametrize("case", CASES)
 def test_foreign_frame_round_trip_keeps_gaussians_and_renders(case: str, garage, tmp_path: Path) -> None:
+    """Written in a foreign frame (float32 file), read back with the same flags: the same Gaussians and images."""
     frame, T = CASES[case]
     scene, _, rig, pose = garage
     path = tmp_path / "foreign.ply"
@@ -147,8 +148,11 @@ C1 = math.sqrt(3 / (4 * math.pi))
 """The degree-1 real SH constant."""
 
 
-def test_every_frame_is_checked() -> None:
+def test_every_frame_is_checked_and_offered() -> None:
     assert set(CONVENTIONS) == set(FRAMES)
+    for name in FRAMES:
+        args = build_parser().parse_args(["bundle", "from-ply", "a.ply", "--rig", "r", "-o", "o", "--frame", name])
+        assert args.frame == name
 
 
 @pytest.mark.parametrize("frame", CONVENTIONS)
@@ -163,15 +167,15 @@ def test_frame_names_mean_what_the_docs_say(frame: str, tmp_path: Path) -> None:
                         torch.tensor([2.0], dtype=torch.float64), sh, 1)
     ply.save_ply(tmp_path / "one.ply")
     got = read_ply(tmp_path / "one.ply", T_parksim_ply(frame), dtype=torch.float64)
-    assert torch.allclose(got.means[0], torch.tensor([5.0, 0.0, 1.0], dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(got.means[0], torch.tensor([5.0, 0.0, 1.0], dtype=torch.float64), atol=1e-12)
     thin_axis = rotation_from_quaternion(got.quats)[0][:, 2]
-    assert torch.allclose(thin_axis.abs(), torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(thin_axis.abs(), torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64), atol=1e-12)
     x, z = torch.eye(3, dtype=torch.float64)[[0, 2]]
     bright = eval_sh(got.sh, x[None], 1)
     assert torch.allclose(bright, eval_sh(ply.sh, forward[None], 1), atol=1e-12)
-    assert torch.allclose(bright, torch.full((1, 3), C1 + 0.5, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(bright, torch.full((1, 3), C1 + 0.5, dtype=torch.float64), atol=1e-12)
     assert torch.allclose(eval_sh(got.sh, z[None], 1), eval_sh(ply.sh, up[None], 1), atol=1e-12)
-    assert torch.allclose(eval_sh(got.sh, z[None], 1), torch.full((1, 3), 0.5, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(eval_sh(got.sh, z[None], 1), torch.full((1, 3), 0.5, dtype=torch.float64), atol=1e-12)
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["binary", "ascii"])
