@@ -14,7 +14,8 @@ import torch
 
 from parksim.cli import main
 from parksim.data import DatasetReader
-from parksim.importers.nerfstudio import Lens, undistortion_map
+from parksim.importers.images import undistortion_maps
+from parksim.importers.nerfstudio import Lens
 from parksim.importers.recording import REPORT_FILE
 
 TOL = 1e-9
@@ -262,8 +263,10 @@ def test_distorted_perspective_cameras_are_undistorted_to_pinholes(tmp_path: Pat
         K = np.array([[lens["fl_x"], 0, lens["cx"] - 0.5], [0, lens["fl_y"], lens["cy"] - 0.5], [0, 0, 1]])
         D = np.array([lens["k1"], lens["k2"], lens["p1"], lens["p2"], 0.0])
         mx, my = cv2.initUndistortRectifyMap(K, D, None, K, (80, 60), cv2.CV_32FC1)
-        ours = undistortion_map(Lens("OPENCV", 80, 60, lens["fl_x"], lens["fl_y"], lens["cx"], lens["cy"],
-                                     (lens["k1"], lens["k2"], 0.0, 0.0, lens["p1"], lens["p2"]), None))
+        distortion = Lens("OPENCV", 80, 60, lens["fl_x"], lens["fl_y"], lens["cx"], lens["cy"],
+                          (lens["k1"], lens["k2"], 0.0, 0.0, lens["p1"], lens["p2"]), None).distortion_to_remove
+        assert distortion is not None
+        ours = undistortion_maps(distortion)
         assert max(np.abs(ours[0] - mx).max(), np.abs(ours[1] - my).max()) < 1e-3
         for f in reader.frames:
             source = _pattern(80, 60, f + reader.rig.names.index(c))

@@ -20,14 +20,15 @@ from __future__ import annotations
 import argparse
 import re
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .recording import Dropped, ImageSource, Recording, RecordingError
+from .images import Distortion, image_source
+from .recording import Dropped, Recording, RecordingError
 
 __all__ = ["HELP", "DESCRIPTION", "ColmapError", "ColmapCamera", "ColmapImage", "ColmapModel", "read_model",
            "recording_from_model", "add_arguments", "load", "MODEL_NAMES"]
@@ -281,47 +282,20 @@ def read_model(folder: str | Path) -> ColmapModel:
 
 
 # --- model -> Recording -------------------------------------------------------------------------------------------
-Undistortion = tuple[np.ndarray, np.ndarray]
-"""cv2.remap maps (x, y) from undistorted pixels to source pixels."""
-
-
-def _lens(cam: ColmapCamera) -> tuple[Any, Callable[[], Undistortion] | None]:
-    """ParkSim camera model for a COLMAP camera, and the undistortion maps' maker when its images need one."""
+def _lens(cam: ColmapCamera) -> tuple[Any, Distortion | None]:
+    """ParkSim camera model for a COLMAP camera, and the distortion its images must lose when it has one."""
     from ..camera import OpenCVFisheye, Pinhole
 
     p = cam.params
     if cam.model == "OPENCV_FISHEYE":
         return OpenCVFisheye(cam.width, cam.height, p[0], p[1], p[2] - 0.5, p[3] - 0.5, list(p[4:])), None
-    # SIMPLE_* and RADIAL have one focal length; the distortion terms after it are cv2's k1 k2 p1 p2, zero-padded.
+    # SIMPLE_* and RADIAL have one focal length; the distortion terms after it are k1 k2 p1 p2, zero-padded.
     fx, fy, cx, cy, *dist = (p[0], *p) if cam.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") else p
     pinhole = Pinhole(cam.width, cam.height, fx, fy, cx - 0.5, cy - 0.5)
     if not dist:
         return pinhole, None
-
-    def maps() -> Undistortion:
-        import cv2
-
-        K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-        D = np.array([*dist, 0.0, 0.0, 0.0][:4], np.float64)
-        return cv2.initUndistortRectifyMap(K, D, None, K, (cam.width, cam.height), cv2.CV_32FC1)
-    return pinhole, maps
-
-
-def _source(path: Path, maps: Callable[[], Undistortion] | None, cache: dict[int, Undistortion],
-            key: int) -> ImageSource:
-    """Decode ``path`` to uint8 RGB when called, undistorted when ``maps`` is given (made once per camera)."""
-    def read() -> np.ndarray:
-        from ..imageio import read_image, to_uint8
-
-        img = to_uint8(read_image(path))
-        if maps is None:
-            return img
-        import cv2
-
-        if key not in cache:
-            cache[key] = maps()
-        return cv2.remap(img, *cache[key], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return read
+    k1, k2, p1, p2 = [*dist, 0.0, 0.0, 0.0][:4]
+    return pinhole, Distortion(cam.width, cam.height, fx, fy, cx - 0.5, cy - 0.5, (k1, k2, 0.0, 0.0), (p1, p2))
 
 
 def _camera_names(model: ColmapModel) -> dict[int, str]:
@@ -392,8 +366,7 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
     if absent:
         raise ColmapError(f"{len(absent)} of {len(paths)} images named in {model.path} are missing from "
                           f"{images_dir} (see --images), e.g. {absent[0]}")
-    cache: dict[int, Undistortion] = {}
-    images = {(f, c): _source(p, lenses[c][1], cache, camera_of[c].camera_id) for (f, c), p in paths.items()}
+    images = {(f, c): image_source(p, lenses[c][1]) for (f, c), p in paths.items()}
     undistorted = {c: f"{camera_of[c].model} -> pinhole (same K), cv2.remap bilinear, black where the source has "
                       f"no pixel" for c in order if lenses[c][1] is not None}
     notes: dict[str, Any] = {

@@ -18,7 +18,6 @@ Every nerfstudio convention lives here (nerfstudio's ``nerfstudio_dataparser.py`
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os
@@ -30,14 +29,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .recording import Dropped, ImageSource, Recording, RecordingError, check_pose
+from .images import Distortion, image_source
+from .recording import Dropped, Recording, RecordingError, check_pose
 
 if TYPE_CHECKING:
     from ..camera import CameraModel
     from ..data import DatasetReader
 
 __all__ = ["HELP", "DESCRIPTION", "add_arguments", "load", "read_transforms", "export", "transforms_of",
-           "undistortion_map", "OPENGL_FROM_OPENCV"]
+           "OPENGL_FROM_OPENCV"]
 
 HELP = "a nerfstudio transforms.json (OPENCV_FISHEYE, OPENCV or PINHOLE cameras) with its images"
 DESCRIPTION = (
@@ -96,9 +96,13 @@ class Lens:
         return Pinhole(self.width, self.height, self.fx, self.fy, cx, cy, **fov)
 
     @property
-    def undistort(self) -> bool:
-        """Whether the images must be resampled to become pinhole images."""
-        return self.model != FISHEYE and any(self.distortion)
+    def distortion_to_remove(self) -> Distortion | None:
+        """The perspective distortion the images must lose to become pinhole images, or None."""
+        if self.model == FISHEYE or not any(self.distortion):
+            return None
+        k1, k2, k3, k4, p1, p2 = self.distortion
+        return Distortion(self.width, self.height, self.fx, self.fy, self.cx - PIXEL_OFFSET, self.cy - PIXEL_OFFSET,
+                          (k1, k2, k3, k4), (p1, p2))
 
 
 @dataclass(frozen=True)
@@ -234,39 +238,6 @@ def _group(file: Path, images: list[Image]) -> tuple[list[str], str]:
     return [f"cam{lenses.index(im.lens)}" for im in images], "distinct intrinsics"
 
 
-@functools.lru_cache(maxsize=16)
-def undistortion_map(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
-    """Source pixel (ParkSim convention) of every pinhole pixel: nerfstudio's perspective distortion,
-    radial ``1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8`` and tangential p1, p2, applied to the pixel's ray.
-    Made once per camera (cached): the ``cv2.remap`` maps of all its images."""
-    k1, k2, k3, k4, p1, p2 = lens.distortion
-    cx, cy = lens.cx - PIXEL_OFFSET, lens.cy - PIXEL_OFFSET
-    v, u = np.mgrid[0:lens.height, 0:lens.width].astype(np.float64)
-    x, y = (u - cx) / lens.fx, (v - cy) / lens.fy
-    r = x * x + y * y
-    d = 1.0 + r * (k1 + r * (k2 + r * (k3 + r * k4)))
-    xd = x * d + 2.0 * p1 * x * y + p2 * (r + 2.0 * x * x)
-    yd = y * d + 2.0 * p2 * x * y + p1 * (r + 2.0 * y * y)
-    return (lens.fx * xd + cx).astype(np.float32), (lens.fy * yd + cy).astype(np.float32)
-
-
-def _source(path: Path, lens: Lens) -> ImageSource:
-    """Decode ``path`` as uint8 RGB (EXIF orientation ignored, as nerfstudio), undistorted when it must be."""
-    def read() -> np.ndarray:
-        import cv2
-
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-        if img is None:
-            raise RecordingError(f"{path}: cannot decode the image (corrupt or unsupported)")
-        rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        if lens.undistort:
-            mx, my = undistortion_map(lens)
-            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        return rgb
-
-    return read
-
-
 def _points(file: Path, meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray] | None:
     """The ``ply_file_path`` point cloud (x, y, z and red, green, blue), or None."""
     if "ply_file_path" not in meta:
@@ -352,13 +323,15 @@ def load(args: argparse.Namespace) -> Recording:
         "timestamps": "the frames' time" if timed else f"frame number / {args.fps} fps",
         "principal_point": "cx = cx_nerfstudio - 0.5, cy = cy_nerfstudio - 0.5 (pixel centres at 0.5 there, 0 here)"}
     undistorted = {c: "nerfstudio's perspective distortion -> pinhole (same fl_x, fl_y, cx, cy), cv2.remap "
-                      "bilinear, black where the source has no pixel" for c in cameras if lenses[c].undistort}
+                      "bilinear, black where the source has no pixel"
+                   for c in cameras if lenses[c].distortion_to_remove}
     extra = {"applied_transform": meta.get("applied_transform"), "undistorted": undistorted,
              "ignored": sorted({k for fr in meta["frames"] for k in ("mask_path", "depth_file_path") if k in fr})}
     notes.update({k: v for k, v in extra.items() if v})
     return Recording(
         rig=rig, frames=frames, timestamps=stamps,
-        images={(f, c): _source(table[(f, c)].path, lenses[c]) for f in frames for c in cameras},
+        images={(f, c): image_source(table[(f, c)].path, lenses[c].distortion_to_remove)
+                for f in frames for c in cameras},
         camera_poses=[{c: table[(f, c)].T_world_camera for c in cameras} for f in frames],
         points=_points(file, meta), dropped=dropped, notes=notes,
         split=_split(file, meta, {f: [table[(f, c)].path for c in cameras] for f in frames}))
