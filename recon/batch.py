@@ -16,10 +16,9 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import ray
-import torch
 from ray.util.queue import Queue
 
 from .checkpoint import checkpoint_path
@@ -52,7 +51,7 @@ class Outcome:
     """How one scene ended: ``trained``, ``resumed``, ``skipped`` or ``failed``, after ``attempts`` task runs."""
 
     name: str
-    status: str
+    status: Literal["trained", "resumed", "skipped", "failed"]
     attempts: int = 0
     iterations: int | None = None
     gaussians: int | None = None
@@ -63,14 +62,15 @@ class Outcome:
 
 def plan_scenes(datasets: Sequence[Path], scenes_dir: Path) -> list[Scene]:
     """A scene per dataset, named after its folder; two datasets of the same name are a ValueError."""
-    scenes = [Scene(Path(d).resolve().name, Path(d).resolve(), (scenes_dir / Path(d).resolve().name).resolve())
-              for d in datasets]
-    seen: dict[str, Path] = {}
-    for s in scenes:
-        if s.name in seen:
-            raise ValueError(f"datasets {seen[s.name]} and {s.data} would both write {s.out}: rename one folder")
-        seen[s.name] = s.data
-    return scenes
+    scenes: dict[str, Scene] = {}
+    for data in (Path(d).resolve() for d in datasets):
+        if not data.name:
+            raise ValueError(f"{data}: a dataset folder needs a name to name its scene")
+        if data.name in scenes:
+            raise ValueError(f"datasets {scenes[data.name].data} and {data} would both write "
+                             f"{scenes[data.name].out}: rename one folder")
+        scenes[data.name] = Scene(data.name, data, (scenes_dir / data.name).resolve())
+    return list(scenes.values())
 
 
 def one_line(error: BaseException, limit: int = 400) -> str:
@@ -136,10 +136,9 @@ class _MetricsTail:
 
 
 @ray.remote
-def _train(scene: Scene, config: str, cpus: int, events: Queue) -> dict[str, Any]:
+def _train(scene: Scene, config: str, events: Queue) -> dict[str, Any]:
     """One scene as a Ray task: resume from the checkpoint if there is one, else start over; returns the bundle's
     metadata. A failed attempt is reported on ``events`` before Ray sees the exception (and retries)."""
-    torch.set_num_threads(cpus)
     resume = checkpoint_path(scene.out).is_file()
     if not resume:   # a run killed before its first checkpoint kept nothing to continue: start it over
         (scene.out / CONFIG_FILE).unlink(missing_ok=True)
@@ -262,8 +261,10 @@ def run_batch(scenes: Sequence[Scene], config: str, cpus_per_task: int | None = 
     report(f"training {len(todo)} of {len(scenes)} scene(s) as Ray tasks, {cpus} CPU(s) each")
     events = Queue(actor_options={"num_cpus": 0})
     relay = _Relay(events, report, retries, progress_every)
-    pending = {_train.options(num_cpus=cpus, max_retries=retries, retry_exceptions=True, name=f"reconstruct {s.name}")
-               .remote(s, _worker_config(config), cpus, events): s for s in todo}
+    threads = {"OMP_NUM_THREADS": str(cpus), "NUMBA_NUM_THREADS": str(cpus)}   # torch's and numba's pools
+    options = {"num_cpus": cpus, "max_retries": retries, "retry_exceptions": True, "runtime_env": {"env_vars": threads}}
+    pending = {_train.options(**options, name=f"reconstruct {s.name}").remote(s, _worker_config(config), events): s
+               for s in todo}
     try:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
