@@ -16,7 +16,7 @@ from .recording import Dropped, Recording, RecordingError, write_recording
 
 __all__ = ["IMPORTERS", "importer", "Recording", "RecordingError", "Dropped", "write_recording"]
 
-IMPORTERS: dict[str, str] = {"nerfstudio": "nerfstudio", "colmap": "colmap"}
+IMPORTERS: dict[str, str] = {"nerfstudio": "nerfstudio", "colmap": "colmap", "rig-log": "rig_log"}
 """CLI name -> module name in this package."""
 
 
