@@ -15,6 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from parksim.bench.procs import free_port
+from parksim.cli import main
 from parksim.client import decode_npz
 from server import Settings, create_app
 from sim_fixtures import make_bundle
@@ -157,6 +158,18 @@ def test_without_ray_the_command_says_what_to_install(bundle_dir):
     assert lines == ["parksim serve: error: --replicas only applies with --ray",
                      "parksim serve: error: --ray needs Ray Serve, which is not installed: install parksim[ray] "
                      "(pip install 'parksim[ray]')"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--autoscale", "3,1"], "argument --autoscale: need 1 <= MIN <= MAX, got 3,1"),
+    (["--autoscale", "2"], "argument --autoscale: expected MIN,MAX like 1,4, got '2'"),
+    (["--replicas", "2", "--autoscale", "1,2"], "argument --autoscale: not allowed with argument --replicas"),
+    (["--replica-cpus", "0"], "argument --replica-cpus: must be an integer >= 1, got 0"),
+])
+def test_bad_ray_flags_are_one_line(bundle_dir, capsys, argv, message):
+    assert main(["serve", "--ray", "--scenes", str(bundle_dir.parent), *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.rstrip().endswith(message), err
 
 
 def test_an_unreachable_cluster_is_one_line(bundle_dir):
