@@ -20,6 +20,7 @@ import torch
 
 from recon.detectors import load_detector
 from recon.detectors.evaluate import MatchOptions, evaluate_folder
+from recon.detectors.protocols import ParkSimProtocol
 from recon.detectors.train import TrainOptions, train_detector
 
 
@@ -82,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
              f"jobs (load average at the end: {os.getloadavg()[0]:.1f})  ",
              f"Date: {datetime.datetime.now().isoformat(timespec='minutes')}", "",
              "Trained on the train frames, evaluated on the test frames (every 10th) of: "
-             + ", ".join(f"`{d}`" for d in args.data) + ". Matching (DMPR-PS): point within 10 px at 600 px = 10 m "
-             "and direction within 30 deg; slot: both ordered entrance points match and angle within 10 deg. "
+             + ", ".join(f"`{d}`" for d in args.data) + ". Matching (ParkSim protocol, docs/detection_protocol.md): "
+             "point within 10 px at 600 px = 10 m and direction within 30 deg; slot: both ordered entrance points "
+             "match and angle within 10 deg. "
              "Precision/recall at confidence 0.5; AP over the confidence sweep. The last two columns drop the slot "
              "angle condition (DMPR-PS' and GCN-Parking's own slot criterion: both entrance points only).", ""]
     summary = ["| detector | width | input px | train steps | train time (s) | ms per BEV | point P | point R | "
@@ -92,9 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     details = []
     for arch, meta in metas.items():
         model = load_detector(args.models / arch)
-        results = [evaluate_folder(model, d, "test", match=MatchOptions()) for d in args.data]
-        loose = _total([evaluate_folder(model, d, "test", match=MatchOptions(slot_angle_deg=180.0))
-                        for d in args.data])
+        results = [evaluate_folder(model, d, "test", protocol=ParkSimProtocol()) for d in args.data]
+        no_angle = ParkSimProtocol(MatchOptions(slot_angle_deg=180.0))
+        loose = _total([evaluate_folder(model, d, "test", protocol=no_angle) for d in args.data])
         total = _total(results)
         ms = sum(r["ms_per_bev"] * r["images"] for r in results) / total["images"]
         opts = meta["options"]

@@ -8,7 +8,7 @@ operating threshold, AP over a low-threshold sweep, summed over frames (not aver
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -18,7 +18,8 @@ from parksim.gaussians import GaussianScene
 from parksim.render import bev_ipm
 
 from .detectors import DecodeOptions, Detections, DMPRDetector, SlotLabels
-from .detectors.evaluate import Evaluator, MatchOptions, Metrics
+from .detectors.evaluate import Evaluator, Metrics
+from .detectors.protocols import ParkSimProtocol, Protocol
 from .evaluate import Response, render_view
 
 __all__ = ["TestBEV", "DetectionScore", "gt_bevs", "rendered_bevs", "score_detector"]
@@ -74,11 +75,12 @@ def rendered_bevs(scene: GaussianScene, reader: DatasetReader, frames: list[int]
 
 @torch.no_grad()
 def score_detector(model: DMPRDetector, bevs: list[TestBEV], decode: DecodeOptions = DecodeOptions(),
-                   match: MatchOptions = MatchOptions(), sweep_threshold: float = 0.05) -> DetectionScore:
-    """Detect on every BEV and score against its labels."""
+                   protocol: Protocol = ParkSimProtocol()) -> DetectionScore:
+    """Detect on every BEV and score against its labels under ``protocol`` (which sets the border margin)."""
     model.eval()
-    evaluator = Evaluator(match)
-    sweep_opts = replace(decode, threshold=min(sweep_threshold, decode.threshold))
+    evaluator = Evaluator(protocol)
+    decode = protocol.decode_options(decode)
+    sweep_opts = protocol.sweep_options(decode)
     detections = []
     for item in bevs:
         image = item.bev.permute(2, 0, 1)[None]

@@ -24,6 +24,7 @@ from .bev_detection import DetectionScore, TestBEV, gt_bevs, rendered_bevs, scor
 from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
 from .detectors import DecodeOptions, Detections, DMPRDetector
+from .detectors.protocols import ParkSimProtocol, Protocol
 from .evaluate import evaluate_views, summarize
 from .paper_tables import DETECTOR_TITLES, tables_markdown
 from .reconstruct import CONFIG_FILE
@@ -77,15 +78,16 @@ def _annotated(item: TestBEV, det: Detections, title: str) -> np.ndarray:
 
 def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, DMPRDetector],
                   out_dir: Path, backend: str = "auto", panel_frames: int = 3,
-                  decode: DecodeOptions = DecodeOptions()) -> dict[str, Any]:
+                  decode: DecodeOptions = DecodeOptions(), protocol: Protocol = ParkSimProtocol()) -> dict[str, Any]:
     """Score each ``(bundle folder, label or None)`` on the dataset's test frames; returns what ``tables.json`` holds.
 
-    ``decode`` sets the detectors' operating point (confidence threshold) for every BEV alike.
+    ``decode`` sets the detectors' operating point (confidence threshold) for every BEV alike; ``protocol`` the
+    detection scoring rules (recorded in the result).
     """
     reader = DatasetReader(data_dir)
     frames = reader.split["test"]
     gt = gt_bevs(reader, frames)
-    gt_scores = {name: score_detector(model, gt, decode) for name, model in detectors.items()}
+    gt_scores = {name: score_detector(model, gt, decode, protocol) for name, model in detectors.items()}
     shown = sorted(range(len(gt)), key=lambda i: (-len(gt[i].labels.slots), gt[i].frame))[:panel_frames]
     panels = {name: [[_annotated(gt[i], s.detections[i], f"GT f{gt[i].frame}")] for i in shown]
               for name, s in gt_scores.items()}
@@ -100,13 +102,13 @@ def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors
         bevs = rendered_bevs(bundle.scene, reader, frames, response, backend)
         detection = {}
         for name, model in detectors.items():
-            score = score_detector(model, bevs, decode)
+            score = score_detector(model, bevs, decode, protocol)
             detection[name] = _scores(score)
             for row, i in zip(panels[name], shown):
                 row.append(_annotated(bevs[i], score.detections[i], info.label))
         rows.append({**asdict(info), "dir": str(scene_dir), **quality["overall"], "detection": detection})
     result = {"scene": Path(data_dir).name, "dataset": str(data_dir), "test_frames": frames,
-              "threshold": decode.threshold,
+              "threshold": decode.threshold, "protocol": protocol.describe(),
               "gt": {name: _scores(s) for name, s in gt_scores.items()}, "runs": rows}
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "tables.json", result)

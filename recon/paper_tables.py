@@ -5,7 +5,8 @@
 * One detection table per detector: precision/recall of marking points and slots on the ground-truth BEVs
   ("GT-" row) and on each of those reconstructions' rendered BEVs.
 * Ablation: every reconstruction, rendering quality plus each detector's slot precision/recall on its BEVs.
-Rows are matched across scenes by label; a cell a scene lacks reads "n/a".
+Rows are matched across scenes by label; a cell a scene lacks reads "n/a". Each detection table names the
+scoring protocol (``recon.detectors.protocols``; results from before protocols were recorded used ParkSim's).
 """
 
 from __future__ import annotations
@@ -64,6 +65,12 @@ def _synthesis(results: list[dict[str, Any]]) -> list[str]:
             *_table(["Scene", "Reconstruction", "iterations", "PSNR", "SSIM", "slot PSNR", "slot SSIM"], rows)]
 
 
+def _protocol(results: list[dict[str, Any]]) -> str:
+    """The line that names the detection scoring protocol(s) of ``results``."""
+    names = dict.fromkeys(r.get("protocol", {}).get("name", "parksim") for r in results)
+    return f"Detection scored with the {' / '.join(names)} protocol (docs/detection_protocol.md)."
+
+
 def _detection(results: list[dict[str, Any]], detector: str) -> list[str]:
     title = DETECTOR_TITLES.get(detector, detector)
     header = ["Variant"] + [f"{r['scene']} {c}" for r in results for c in ("point P", "point R", "slot P", "slot R")]
@@ -78,7 +85,7 @@ def _detection(results: list[dict[str, Any]], detector: str) -> list[str]:
         rows.append([label] + cells)
     counts = "; ".join(f"{r['scene']}: {_count(r, detector)}" for r in results)
     return [f"### {title} on ground-truth vs rendered BEVs of the test frames", "", *_table(header, rows), "",
-            f"Labelled: {counts}."]
+            f"Labelled: {counts}.", _protocol(results)]
 
 
 def _count(result: dict[str, Any], detector: str) -> str:
@@ -98,7 +105,7 @@ def _ablation(results: list[dict[str, Any]], detectors: list[str]) -> list[str]:
         rows += [[run["label"], *_quality(run), *(c for d in detectors for c in _pr(run["detection"].get(d), "slots"))]
                  for run in r["runs"]]
     return ["### Ablation of the slot-aware strategy (rendering quality and rendered-BEV slot detection)", "",
-            *_table(header, rows)]
+            *_table(header, rows), "", _protocol(results)]
 
 
 def tables_markdown(results: list[dict[str, Any]]) -> str:

@@ -38,10 +38,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
     e = sub.add_parser("eval", help="precision, recall and AP of a detector on a data folder",
-                       description="DMPR-PS' definitions: a marking point is true when within --distance-px "
-                                   "(at 600 px = 10 m, converted to the BEV's scale) of a labelled point and its "
-                                   "direction within --direction-deg; a slot when both ordered entrance points "
-                                   "match and its angle agrees within --slot-angle-deg.")
+                       description="--protocol parksim (default): a marking point is true when within "
+                                   "--distance-px (at 600 px = 10 m, converted to the BEV's scale) of a labelled "
+                                   "point and its direction within --direction-deg; a slot when both ordered "
+                                   "entrance points match and its angle agrees within --slot-angle-deg. "
+                                   "--protocol dmpr-ps: DMPR-PS' published rules with their fixed thresholds "
+                                   "(docs/detection_protocol.md).")
     e.add_argument("model", type=Path, help="trained detector (folder or model.pt)")
     e.add_argument("data", type=Path, help="dataset or ps2.0 folder")
     e.add_argument("--split", choices=["test", "train", "all"], default="test",
@@ -53,6 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     e.add_argument("--direction-deg", type=number(0, 180, open_low=True), default=30.0,
                    help="point direction tolerance")
     e.add_argument("--slot-angle-deg", type=number(0, 180, open_low=True), default=10.0, help="slot angle tolerance")
+    e.add_argument("--protocol", choices=["parksim", "dmpr-ps"], default="parksim", help="detection scoring rules")
     e.add_argument("--json", type=Path, help="also write the metrics here")
     e.add_argument("--threads", type=integer(1), default=2, help="torch CPU threads")
     return p
@@ -77,17 +80,19 @@ def _eval(args: argparse.Namespace) -> int:
 
     from recon.detectors import DecodeOptions, load_detector
     from recon.detectors.evaluate import MatchOptions, evaluate_folder
+    from recon.detectors.protocols import get_protocol
 
     from ..fileio import write_json
     from .outputs import check_output_file
 
+    protocol = get_protocol(args.protocol, MatchOptions(args.distance_px, args.direction_deg, args.slot_angle_deg))
     if args.json:
         check_output_file(args.json)
     torch.set_num_threads(args.threads)
     model = load_detector(args.model)
-    match = MatchOptions(args.distance_px, args.direction_deg, args.slot_angle_deg)
-    result = evaluate_folder(model, args.data, args.split, DecodeOptions(threshold=args.threshold), match)
-    print(f"{args.data} ({result['split']}, {result['images']} BEVs, {result['ms_per_bev']:.1f} ms/BEV)")
+    result = evaluate_folder(model, args.data, args.split, DecodeOptions(threshold=args.threshold), protocol)
+    print(f"{args.data} ({result['split']}, {result['images']} BEVs, {result['ms_per_bev']:.1f} ms/BEV, "
+          f"{protocol.name} protocol)")
     for name in ("points", "slots"):
         m = result[name]
         print(f"  {name:6s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  AP {m['ap']:.3f}  "

@@ -46,6 +46,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="trained detector (dmpr=detectors/dmpr, gcn=detectors/gcn/model.pt); repeat for both")
     p.add_argument("--threshold", type=number(0, 1, open_low=True, open_high=True), default=0.5,
                    help="detectors' marking-point confidence threshold, in (0, 1)")
+    p.add_argument("--protocol", choices=["parksim", "dmpr-ps"], default="parksim",
+                   help="detection scoring rules: ParkSim's (metric, slot-angle check) or DMPR-PS' published ones "
+                        "(shape check, label-first matching, 11-point AP, 5 %% border); docs/detection_protocol.md")
     p.add_argument("--panel-frames", type=integer(0), default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
@@ -56,6 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def _tables(args: argparse.Namespace, out: Path) -> int:
     from recon.detectors import DecodeOptions
+    from recon.detectors.protocols import get_protocol
     from recon.paper_eval import evaluate_runs
     from recon.slot_aware import DetectorRef
 
@@ -67,7 +71,8 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
         raise ValueError("give each detector kind once")
     detectors = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in args.detector}
     atomic_files(out, lambda tmp: evaluate_runs(args.scenes, args.data, detectors, tmp, args.backend,
-                                                args.panel_frames, DecodeOptions(threshold=args.threshold)))
+                                                args.panel_frames, DecodeOptions(threshold=args.threshold),
+                                                get_protocol(args.protocol)))
     print((out / "tables.md").read_text(), end="")
     print(f"report: {out}/tables.json, panels: " + (", ".join(f"{out}/panel_{k}.png" for k in detectors) or "none"))
     return 0
