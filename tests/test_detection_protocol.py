@@ -208,3 +208,19 @@ def test_bad_mat_files_name_the_file(tmp_path, content, message):
     with pytest.raises(LabelError, match=f"bad.mat: .*{message}"):
         read_ps2_labels(path)
 
+
+
+def test_ps2_folder_of_mat_labels_is_read_and_plain_labels_cannot_train(tmp_path):
+    """A ps2.0 folder whose labels are .mat files yields its items; the original position-only labels are refused
+    for training (a detector learns directions and shapes from them) with a line naming the item."""
+    import cv2
+
+    from recon.detectors.dataset import TrainingSet, iter_items
+
+    cv2.imwrite(str(tmp_path / "a.jpg"), np.full((600, 600, 3), 90, np.uint8))
+    scipy.io.savemat(tmp_path / "a.mat", {"marks": np.array([[151.0, 301.0], [301.0, 301.0]]),
+                                          "slots": np.array([[2.0, 1.0, 1.0, 90.0]])})
+    items = list(iter_items(tmp_path))
+    assert [i.name for i in items] == [f"{tmp_path.name}/a"] and len(items[0].labels.marks) == 2
+    with pytest.raises(ValueError, match="a: labels without marking-point directions"):
+        TrainingSet([tmp_path], 64)

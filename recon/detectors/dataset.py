@@ -48,9 +48,10 @@ def _parksim_items(folder: Path, split: str) -> Iterator[BEVItem]:
 
 
 def _ps2_items(folder: Path) -> Iterator[BEVItem]:
-    files = sorted(folder.glob("*.json"))
+    files = sorted([*folder.glob("*.json"), *folder.glob("*.mat")])
     if not files:
-        raise FileNotFoundError(f"{folder}: neither a ParkSim dataset (rig.json) nor a ps2.0 folder (*.json labels)")
+        raise FileNotFoundError(f"{folder}: neither a ParkSim dataset (rig.json) nor a ps2.0 folder (*.json or *.mat "
+                                "labels)")
     for path in files:
         image_path = next((path.with_suffix(s) for s in (".jpg", ".png") if path.with_suffix(s).is_file()), None)
         if image_path is None:
@@ -142,6 +143,10 @@ class TrainingSet:
         self.items = [resize(item, size) for folder in folders for item in iter_items(folder, "train")]
         if not self.items:
             raise ValueError(f"no training BEVs in {[str(f) for f in folders]}")
+        plain = next((item.name for item in self.items if not item.labels.directional), None)
+        if plain is not None:
+            raise ValueError(f"{plain}: labels without marking-point directions and shapes (ps2.0's original form) "
+                             "can score slots but cannot train a detector; use DMPR-PS's directional labels")
 
     def __len__(self) -> int:
         return len(self.items)
