@@ -38,6 +38,8 @@ quaternion -> matrix round trip (~1e-16) and nothing for a convention error."""
 OCAM_FIT_PX = 1e-3
 """Largest pixel distance between the synth OpenCVFisheye and its OCamCalib fit (ss of degree 8 in rho, least
 squares over the lens' 95 deg) over a 6 px grid: measured 9.1e-5 px."""
+OCAM_JSON_PX = 1e-6
+"""The same for the OCam JSON form, whose invpol is the synth lens' own polynomial (exact up to rounding)."""
 WOODSCAPE_FIT_PX = 0.02
 """The same for WoodScape's radial_poly (degree 4 in theta) least-squares fitted to the synth lens (theta up to
 degree 9): measured 0.0073 px."""
@@ -105,16 +107,30 @@ def woodscape_json(name: str, cam, path: Path) -> None:
         "extrinsic": {"quaternion": [qx, qy, qz, qw], "translation": cam.T_vehicle_camera[:3, 3].tolist()}}))
 
 
+def _invpol(model) -> np.ndarray:
+    """OCamCalib's world2cam polynomial for the lens: its own polynomial in theta, moved to ``theta - pi/2``
+    (exact: Kannala-Brandt is a polynomial in theta)."""
+    k = model.k.numpy()
+    kb = np.polynomial.Polynomial([0, 1, 0, k[0], 0, k[1], 0, k[2], 0, k[3]]) * float(model.fx)
+    return kb(np.polynomial.Polynomial([math.pi / 2, 1])).coef
+
+
+def ocam_json(name: str, model, path: Path) -> None:
+    """The surround-view OCam JSON for the lens: cam_K = [[1, 0, cx], [0, 1, cy], [0, 0, 1]], cam_dist = invpol."""
+    K = [[1.0, 0.0, float(model.cx)], [0.0, 1.0, float(model.cy)], [0.0, 0.0, 1.0]]
+    param = {"img_dist_w": model.width, "img_dist_h": model.height, "cam_K": {"data": K},
+             "cam_dist": {"data": _invpol(model).tolist()}}
+    path.write_text(json.dumps({name: {"param": param}}))
+
+
 def ocam_txt(model, path: Path) -> None:
     """OCamCalib's calib_results.txt for the lens: ss (cam2world, degree 8 in rho) least-squares fitted to
-    ``-rho / tan(theta)``; invpol the lens' own polynomial in theta moved to OCamCalib's ``theta - pi/2``."""
+    ``-rho / tan(theta)``, and ``_invpol``."""
     theta = np.linspace(1e-4, THETA_MAX, 600)
     rho = _kb_rho(model, theta)
     scale = rho.max()
     ss = np.polynomial.polynomial.polyfit(rho / scale, -rho / np.tan(theta), 8) / scale ** np.arange(9)
-    k = model.k.numpy()
-    kb = np.polynomial.Polynomial([0, 1, 0, k[0], 0, k[1], 0, k[2], 0, k[3]]) * float(model.fx)
-    invpol = kb(np.polynomial.Polynomial([math.pi / 2, 1])).coef
+    invpol = _invpol(model)
     fmt = lambda c: " ".join(repr(float(v)) for v in c)  # noqa: E731
     path.write_text(
         "#polynomial coefficients for the DIRECT mapping function (ocam_model.ss in MATLAB)\n\n"
@@ -196,12 +212,14 @@ def log(tiny: Path) -> Path:
     write_rig_log(tiny, root, video=False)
     videos(tiny, root / "video", 10.0)
     rig = DatasetReader(tiny).rig
-    for kind in ("woodscape", "ocam"):
+    for kind in ("woodscape", "ocam", "ocam_json"):
         (root / kind).mkdir()
     for c, cam in rig.cameras.items():
         woodscape_json(c, cam, root / "woodscape" / f"{c}.json")
         ocam_txt(cam.model, root / "ocam" / f"{c}.txt")
+        ocam_json(c, cam.model, root / "ocam_json" / f"{c}.json")
     extrinsics_file(rig, root / "ocam" / "extrinsics.json")
+    extrinsics_file(rig, root / "ocam_json" / "extrinsics.yaml")
     return root
 
 
@@ -273,15 +291,18 @@ def test_mp4_videos_import_with_their_frame_times_and_sample_at_fps(tiny: Path, 
     assert half["sources"]["rear"]["sampled"] == 6 and half["sources"]["rear"]["frames"] == 12
 
 
-@pytest.mark.parametrize("calib, bound", [("woodscape", WOODSCAPE_FIT_PX), ("ocam", OCAM_FIT_PX)])
-def test_woodscape_and_ocam_calibrations_reproduce_the_lens(tiny: Path, log: Path, calib: str, bound: float) -> None:
+@pytest.mark.parametrize("calib, fmt, bound", [("woodscape", "woodscape", WOODSCAPE_FIT_PX),
+                                               ("ocam", "ocam-txt", OCAM_FIT_PX),
+                                               ("ocam_json", "ocam-json", OCAM_JSON_PX)])
+def test_woodscape_and_ocam_calibrations_reproduce_the_lens(tiny: Path, log: Path, calib: str, fmt: str,
+                                                            bound: float) -> None:
     out = log.parent / f"from_{calib}"
     report = run([*base(log, calib), "--images", str(log / "images")], out)
     a, b = DatasetReader(tiny), DatasetReader(out)
-    assert report["calibration_format"] == {"woodscape": "woodscape", "ocam": "ocam-txt"}[calib]
+    assert report["calibration_format"] == fmt
     assert sorted(b.rig.names) == sorted(a.rig.names) and (b.poses - a.poses).abs().max() < TOL
     for c in a.rig.names:
-        assert b.rig.cameras[c].model.model == {"woodscape": "radial_poly", "ocam": "ocam"}[calib]
+        assert b.rig.cameras[c].model.model == ("radial_poly" if calib == "woodscape" else "ocam")
         assert _pixel_error(a.rig.cameras[c].model, b.rig.cameras[c].model) < bound
         assert (b.rig.cameras[c].T_vehicle_camera - a.rig.cameras[c].T_vehicle_camera).abs().max() < TOL
 
@@ -429,3 +450,10 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(tiny: Path, log: Path,
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and message in err, err
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_a_parksim_rig_file_is_a_whole_calibration(tiny: Path, log: Path) -> None:
+    report = run(["import", "rig-log", "--calib", str(tiny / "rig.json"), "--poses", str(log / "poses.csv"),
+                  "--images", str(log / "images")], log.parent / "from_rig")
+    assert report["calibration_format"] == "parksim"
+    assert DatasetReader(log.parent / "from_rig").rig.to_dict() == DatasetReader(tiny).rig.to_dict()

@@ -127,9 +127,9 @@ class PoseLog:
         """T_world_vehicle ``[M, 4, 4]`` at times ``t``, and per time None or why it has no pose (then NaN)."""
         t = np.asarray(t, np.float64)
         n = len(self.times)
-        nearest = np.clip(np.searchsorted(self.times, t), 1, max(n - 1, 1))
-        nearest = np.where(np.abs(self.times[nearest - 1] - t) <= np.abs(self.times[np.minimum(nearest, n - 1)] - t),
-                           nearest - 1, np.minimum(nearest, n - 1))
+        right = np.minimum(np.searchsorted(self.times, t), n - 1)
+        left = np.maximum(right - 1, 0)
+        nearest = np.where(np.abs(self.times[left] - t) <= np.abs(self.times[right] - t), left, right)
         logged = np.abs(self.times[nearest] - t) <= TIME_EPS
         outside = ~logged & ((t < self.times[0]) | (t > self.times[-1]))
         j = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, max(n - 2, 0))
