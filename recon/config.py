@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .slot_aware.config import SlotAwareConfig
 
-__all__ = ["TrainConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config", "load_config",
-           "parse_config", "dump_config"]
+__all__ = ["TrainConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config",
+           "load_config", "parse_config", "dump_config"]
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "parksim" / "configs"
 """The packaged training presets, one YAML file per name."""

@@ -21,7 +21,7 @@ from parksim.rig import Rig
 from .config import PoseRefineConfig
 from .masks import scene_mask
 from .metrics import psnr, slot_region_mask, slot_segments, ssim
-from .pose_refine import POSES_KEY, align_poses
+from .pose_refine import POSES_KEY, PoseCorrections, align_poses
 
 if TYPE_CHECKING:
     from parksim.bundle import Bundle
@@ -95,7 +95,7 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
 
 
 def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int, str]], response: Response,
-                   backend: str, steps: int | None) -> tuple[Rig, ViewPose | None, str]:
+                   backend: str, steps: int | None) -> tuple[Rig, PoseCorrections | None, str]:
     """The rig and test poses to score a bundle at, and a note saying how: a pose-refined bundle renders with its
     refined rig at test poses aligned for ``steps`` (None: its run's ``pose_opt.test_steps``) with Gaussians frozen."""
     refinement = bundle.meta.get(POSES_KEY)
@@ -106,7 +106,7 @@ def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int,
     if steps == 0:
         return bundle.rig, None, "off: test frames scored at their recorded poses with the refined rig"
     aligned = align_poses(bundle.scene, reader, bundle.rig, views, response, cfg, steps, backend)
-    return bundle.rig, aligned.view_pose, (f"test-time pose alignment: each test {refinement['mode']} pose fitted "
+    return bundle.rig, aligned, (f"test-time pose alignment: each test {refinement['mode']} pose fitted "
                                            f"for {steps} Adam steps with the Gaussians frozen, then scored")
 
 
@@ -115,7 +115,8 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
                     align_steps: int | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
 
-    A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off)."""
+    A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off);
+    eval.json then holds them as ``aligned_test_poses`` (poses.json schema)."""
     from parksim.bundle import load
     from parksim.fileio import write_json
 
@@ -128,7 +129,8 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     if not frames:
         raise ValueError(f"{data_dir}: no test frames in split.json")
     views = [(f, c) for f in frames for c in reader.rig.names]
-    rig, view_pose, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
+    rig, aligned, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
+    view_pose = aligned.view_pose if aligned is not None else None
     (out_dir / "renders").mkdir(parents=True, exist_ok=True)
     report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=out_dir / "renders",
                             rig=rig, view_pose=view_pose)
@@ -143,6 +145,8 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,
               "lpips": "computed" if lpips is not None else "not computed (no LPIPS weights given)",
               "pose_alignment": alignment, **summary, "views": report.views}
+    if aligned is not None:
+        result["aligned_test_poses"] = aligned.refined_poses(frames)
     write_json(out_dir / "eval.json", result)
     (out_dir / "eval.md").write_text(_table(result, reader.rig.names))
     return result

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from parksim.data import DatasetReader
-from parksim.geometry import invert_transform
 from parksim.gaussians import GaussianScene
+from parksim.geometry import invert_transform
 from parksim.render import render
 from parksim.rig import Rig, RigCamera
 
@@ -71,7 +71,7 @@ class PoseCorrections:
                  frames: Sequence[int] | None = None, extrinsics: bool | None = None) -> None:
         self.reader, self.rig, self.cfg, self.iterations = reader, rig, cfg, iterations
         self.per_image = not reader.has_vehicle_poses
-        frames = list(reader.frames if frames is None else frames)
+        self.frames = frames = list(reader.frames if frames is None else frames)
         self.keys: list[Key] = [(f, c) for f in frames for c in rig.names] if self.per_image else frames
         self.rows = {k: i for i, k in enumerate(self.keys)}
         self.extrinsics_on = (cfg.extrinsics if extrinsics is None else extrinsics) and not self.per_image
@@ -121,10 +121,11 @@ class PoseCorrections:
 
     @torch.no_grad()
     def refined_poses(self, refined: Sequence[int]) -> dict[str, Any]:
-        """poses.json content (the dataset's schema) with every frame's corrected pose (needs all frames' rows);
-        ``refined`` lists the frames whose corrections were trained (the others keep the dataset's pose)."""
-        frames = []
-        for frame, stamp in zip(self.reader.frames, self.reader.timestamps):
+        """poses.json content (the dataset's schema) with the corrected pose of each of ``self.frames``;
+        ``refined`` lists the frames whose corrections were fitted (the others keep the dataset's pose)."""
+        frames, stamps = [], dict(zip(self.reader.frames, self.reader.timestamps))
+        for frame in self.frames:
+            stamp = stamps[frame]
             entry: dict[str, Any] = {"frame": frame, "timestamp": stamp}
             if self.per_image:
                 entry["T_world_camera"] = {c: self.camera_pose(c, frame).tolist() for c in self.rig.names}
