@@ -70,7 +70,8 @@ def garage(tmp_path_factory):
                           torch.tensor([-12.0, 5.0]), s.sh[:2], s.sh_degree)
     scene = GaussianScene(*(torch.cat([getattr(s, k), getattr(extra, k)]) for k in
                             ("means", "quats", "log_scales", "opacity_logits", "sh")), s.sh_degree)
-    b = bundle_io.Bundle(scene, b.rig, b.map, b.meta)
+    refined = {"frames": [{"frame": 0, "timestamp": 0.0, "T_world_vehicle": torch.eye(4).tolist()}], "refined": [0]}
+    b = bundle_io.Bundle(scene, b.rig, b.map, b.meta, poses=refined)
     bundle_io.save(path, b)
     grid, weights = measure_bundle(b, OPTIONS)
     return path, b, grid, weights
@@ -176,6 +177,7 @@ def test_cli_writes_a_compact_bundle(garage, tmp_path, capsys):
     assert "visibility cells" in capsys.readouterr().out
     small = bundle_io.load(out)
     assert len(small.scene) == round(0.5 * len(bundle_io.load(path).scene)) and small.visibility is not None
+    assert small.poses == garage[1].poses is not None   # refined poses travel with the compact bundle
     assert main(argv) == 2
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert main(argv + ["--overwrite", "--no-visibility"]) == 0

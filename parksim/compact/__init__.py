@@ -71,7 +71,7 @@ def reduce_bundle(bundle: Bundle, grid: GridPoses, weights: torch.Tensor, option
         sizes = [len(grid_out.members(c)) for c in range(grid.n_cells) if grid_out.measured[c]]
         report["cells"] = len(sizes)
         report["cell_gaussians_mean"] = sum(sizes) / len(sizes)
-    return Bundle(scene, bundle.rig, bundle.map, {**bundle.meta, "compaction": report}, grid_out)
+    return Bundle(scene, bundle.rig, bundle.map, {**bundle.meta, "compaction": report}, grid_out, bundle.poses)
 
 
 def compact_bundle(bundle: Bundle, options: CompactOptions = CompactOptions(), progress: bool = False) -> Bundle:
