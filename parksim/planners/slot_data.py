@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from ..client import LocalSim
 from ..fileio import atomic_directory
@@ -63,12 +64,12 @@ def bev_labels(world_map: dict[str, Any], pose: tuple[float, float, float], spec
     """
     x, y, yaw = pose
     c, s = math.cos(yaw), math.sin(yaw)
-    marks, index = [], {}
+    marks: list[list[float]] = []
+    index: dict[int, int] = {}
     for m in world_map["marks"]:
         dx, dy = m["x"] - x, m["y"] - y
         vx, vy = c * dx + s * dy, -s * dx + c * dy
-        u = (spec.width - 1) / 2 - (vy - spec.center_y) / spec.m_per_px
-        v = (spec.height - 1) / 2 - (vx - spec.center_x) / spec.m_per_px
+        u, v = spec.ground_to_pixel(torch.tensor([vx, vy], dtype=torch.float64)).tolist()
         inside = 0 <= u <= spec.width - 1 and 0 <= v <= spec.height - 1
         box = spec.ego_box
         under_ego = box is not None and box[0] <= vx <= box[1] and box[2] <= vy <= box[3]
