@@ -135,8 +135,8 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
     for sock in bind(args.host, args.port):   # a busy port fails before Ray starts; Serve's proxy binds it next
         sock.close()
     scaling = ray_serve.Scaling(args.replicas or 1, args.autoscale, args.replica_cpus or 1)
-    signal.signal(signal.SIGTERM, signal.default_int_handler)   # stop as on Ctrl-C, taking Serve down
     ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)   # as Ctrl-C (after ray.init, which sets its own)
     try:
         size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
         print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
