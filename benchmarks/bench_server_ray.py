@@ -217,11 +217,10 @@ class BatchedReplica(SimReplica):
 # --- configurations ------------------------------------------------------------------------------------------------
 
 def deploy(scenes: Path, scaling: Scaling, batched: bool) -> None:
+    """``SimReplica`` as ``parksim serve --ray`` deploys it, or the batching variant with the same options."""
     settings = Settings()
-    app = application(scenes, settings, scaling)
-    if batched:
-        app = serve.deployment(BatchedReplica, name="SimReplica").options(**scaling.options(settings)).bind(
-            str(scenes.resolve()), settings)
+    app = (serve.deployment(name="SimReplica")(BatchedReplica).options(**scaling.options(settings)).bind(
+        str(scenes.resolve()), settings) if batched else application(scenes, settings, scaling))
     serve.run(app, name=APP_NAME, route_prefix="/", logging_config=QUIET)
 
 
