@@ -152,7 +152,7 @@ class Rig:
     def load(cls, path: str | Path) -> Rig:
         path = Path(path)
         if not path.is_file():
-            raise CalibrationError(f"rig file not found: {path}")
+            raise CalibrationError(f"{path}: rig file not found")
         text = path.read_text()
         try:
             if path.suffix in (".yaml", ".yml"):

@@ -131,8 +131,13 @@ def test_bad_poses_and_rig(dataset, tmp_path):
     other = tmp_path / "norig"
     shutil.copytree(root, other)
     DatasetLayout(other).rig.unlink()
-    with pytest.raises(DatasetError, match="rig.json"):
+    with pytest.raises(DatasetError, match="rig.json") as e:
         DatasetReader(other)
+    assert str(e.value).count(str(DatasetLayout(other).rig)) == 1
+    DatasetLayout(other).rig.write_text("{not a rig")
+    with pytest.raises(DatasetError, match="rig.json") as e:
+        DatasetReader(other)
+    assert str(e.value).count(str(DatasetLayout(other).rig)) == 1
     with pytest.raises(DatasetError, match="dataset directory not found"):
         DatasetReader(tmp_path / "nothing")
 

@@ -64,8 +64,8 @@ class DatasetReader:
     def rig(self) -> Rig:
         try:
             return Rig.load(self.layout.rig)
-        except CalibrationError as e:
-            raise DatasetError(self.layout.rig, str(e)) from None
+        except CalibrationError as e:   # its message may already start with the file's name: say it once
+            raise DatasetError(self.layout.rig, str(e).removeprefix(f"{self.layout.rig}: ")) from None
 
     @cached_property
     def _pose_table(self) -> tuple[list[int], Tensor | None, list[float], dict[str, Tensor] | None]:
