@@ -31,13 +31,12 @@ def ray_address() -> Iterator[str]:
 
 
 @pytest.fixture(scope="module")
-def datasets(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def datasets(tiny_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """A tiny synth dataset made once, copied under other names (b; c, whose run will be killed half-way; bad, whose
     rig.json is corrupt)."""
     root = tmp_path_factory.mktemp("batch-data")
-    assert cli_main(["synth", "tiny", "-o", str(root / "a"), "--quiet"]) == 0
-    for name in ("b", "c", "bad"):
-        shutil.copytree(root / "a", root / name)
+    for name in ("a", "b", "c", "bad"):
+        shutil.copytree(tiny_data, root / name)
     (root / "bad" / "rig.json").write_text('{"cameras": ')
     return {name: root / name for name in ("a", "b", "c", "bad")}
 

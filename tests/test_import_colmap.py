@@ -32,10 +32,9 @@ POSE_TOL = 1e-9
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("colmap") / "tiny"
-    assert cli_main(["synth", "tiny", "-o", str(out), "--quiet"]) == 0
-    return out
+def synth(tiny_data: Path) -> Path:
+    """The session's ``parksim synth tiny`` (tests/conftest.py): read only."""
+    return tiny_data
 
 
 def camera_poses(reader: DatasetReader) -> dict[tuple[int, str], np.ndarray]:

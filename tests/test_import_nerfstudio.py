@@ -25,24 +25,28 @@ hide a convention error (a wrong pixel offset is 0.5 px, a wrong axis ~1)."""
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``parksim synth tiny`` (4 fisheyes, 160x120, 12 frames), made once for the module."""
-    out = tmp_path_factory.mktemp("ns") / "tiny"
-    assert main(["synth", "tiny", "-o", str(out), "--quiet"]) == 0
-    return out
+def tiny(tiny_data: Path) -> Path:
+    """The session's ``parksim synth tiny`` (tests/conftest.py): read only."""
+    return tiny_data
 
 
 @pytest.fixture(scope="module")
-def exported(tiny: Path) -> Path:
-    out = tiny.parent / "exported"
+def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """This module's folder for what it writes."""
+    return tmp_path_factory.mktemp("ns")
+
+
+@pytest.fixture(scope="module")
+def exported(tiny: Path, work: Path) -> Path:
+    out = work / "exported"
     assert main(["export", "nerfstudio", str(tiny), "-o", str(out)]) == 0
     return out
 
 
 @pytest.fixture(scope="module")
-def imported(tiny: Path, exported: Path) -> Path:
+def imported(tiny: Path, exported: Path, work: Path) -> Path:
     """The export imported back with the original rig as the known rig (its vehicle frame and scale)."""
-    out = tiny.parent / "imported"
+    out = work / "imported"
     assert main(["import", "nerfstudio", str(exported), "-o", str(out), "--rig", str(tiny), "--quiet"]) == 0
     return out
 
@@ -121,8 +125,9 @@ def test_round_trip_keeps_intrinsics_poses_pixels_and_the_rig(tiny: Path, import
     assert report["cameras_by"] == "parent folder" and report["dropped"] == 0
 
 
-def test_without_a_known_rig_the_fit_recovers_the_rig_up_to_the_vehicle_frame(tiny: Path, exported: Path) -> None:
-    out = tiny.parent / "free"
+def test_without_a_known_rig_the_fit_recovers_the_rig_up_to_the_vehicle_frame(tiny: Path, exported: Path,
+                                                                              work: Path) -> None:
+    out = work / "free"
     assert main(["import", "nerfstudio", str(exported), "-o", str(out), "--quiet"]) == 0
     a, b = DatasetReader(tiny), DatasetReader(out)
     X = torch.linalg.inv(a.poses[0]) @ b.poses[0]           # the fit's vehicle frame in the original's

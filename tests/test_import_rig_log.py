@@ -198,17 +198,15 @@ def write_rig_log(data: Path, out: Path, video: bool) -> list[str]:
 
 # --- fixtures --------------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``parksim synth tiny`` (4 fisheyes, 160x120, 12 frames at 10 Hz), made once for the module."""
-    out = tmp_path_factory.mktemp("riglog") / "tiny"
-    assert main(["synth", "tiny", "-o", str(out), "--quiet"]) == 0
-    return out
+def tiny(tiny_data: Path) -> Path:
+    """The session's ``parksim synth tiny`` (tests/conftest.py): read only."""
+    return tiny_data
 
 
 @pytest.fixture(scope="module")
-def log(tiny: Path) -> Path:
+def log(tiny: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """tiny as a rig log: OpenCV YAML, WoodScape and OCam calibrations, poses.csv, PNG folders and mp4v videos."""
-    root = tiny.parent / "log"
+    root = tmp_path_factory.mktemp("riglog") / "log"
     write_rig_log(tiny, root, video=False)
     videos(tiny, root / "video", 10.0)
     rig = DatasetReader(tiny).rig

@@ -14,7 +14,6 @@ import pytest
 import torch
 
 from parksim.bundle import load
-from parksim.cli import main as cli_main
 from parksim.data import DatasetReader
 from recon.checkpoint import CheckpointError, checkpoint_path
 from recon.config import ConfigError, TrainConfig, load_config
@@ -28,13 +27,6 @@ from recon.strategy_mcmc import relocation_correction
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "tiny"
-
-
-@pytest.fixture(scope="session")
-def tiny_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("recon") / "tiny"
-    assert cli_main(["synth", "tiny", "-o", str(out), "--quiet"]) == 0
-    return out
 
 
 @pytest.fixture(scope="session")
