@@ -127,6 +127,9 @@ class PoseRefineConfig(_Strict):
     lr_final_factor: float = Field(0.01, gt=0, le=1, description="lr decays exponentially to this fraction")
     weight_decay: float = Field(1e-6, ge=0, description="Adam (L2) weight decay pulling corrections to identity")
     test_steps: int = Field(100, ge=0, description="evaluation: test-time pose alignment steps (0: none)")
+    test_lr: float = Field(5e-3, gt=0, description="Adam lr of test-time alignment (decays by lr_final_factor); "
+                           "an Adam step moves each coordinate by about lr, so it reaches about 0.2 * test_lr * "
+                           "test_steps (10 cm, 6 deg)")
 
 
 class TrainConfig(_Strict):

@@ -81,6 +81,8 @@ class PoseCorrections:
         if self.extrinsics_on:
             groups.append({"params": [self.extrinsics], "name": "extrinsics"})
         self.optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, weight_decay=cfg.weight_decay)
+        trained = [self.rows[f] for f in reader.split["train"] if f in self.rows]
+        self._gauge = trained if self.extrinsics_on and trained else None
         self._centres = {c: rig.cameras[c].T_vehicle_camera[:3, 3] for c in rig.names}
         self._inverse = {c: invert_transform(rig.cameras[c].T_vehicle_camera) for c in rig.names}
 
@@ -152,12 +154,20 @@ class PoseCorrections:
 
     # --- optimisation ------------------------------------------------------------------------
     def step(self, iteration: int) -> None:
-        """One Adam step at the decayed learning rate of ``iteration``; clears the gradients."""
+        """One Adam step at the decayed learning rate of ``iteration``, then the gauge fix; clears the gradients.
+
+        A correction common to every frame moves all cameras as one correction common to every camera's
+        extrinsics does, so the pair is fixed only up to that shared motion, along which Adam drifts freely. The
+        gauge: the trained frames' corrections have zero mean, so odometry errors are taken as zero-mean noise and
+        their common part as the rig's calibration error, which the extrinsics' own gradients then carry."""
         lr = exp_decay(iteration, self.iterations, self.cfg.lr, self.cfg.lr_final_factor)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+        if self._gauge is not None:
+            with torch.no_grad():
+                self.poses[self._gauge] -= self.poses[self._gauge].mean(0)
 
     def state_dict(self) -> dict[str, Any]:
         """Checkpoint state: the corrections and their Adam moments."""
@@ -179,9 +189,11 @@ def align_poses(scene: GaussianScene, reader: DatasetReader, rig: Rig, views: Se
                 response: Response | None, cfg: PoseRefineConfig, steps: int, backend: str = "auto",
                 ssim_lambda: float = 0.2) -> PoseCorrections:
     """Test-time pose alignment (as BARF and its successors evaluate): Gaussians, rig and response frozen,
-    only the views' own pose corrections are fitted, full batch, for ``steps`` Adam steps of the training loss."""
+    only the views' own pose corrections are fitted, full batch, for ``steps`` Adam steps (``cfg.test_lr``) of the
+    training loss."""
     frames = sorted({f for f, _ in views})
-    corr = PoseCorrections(reader, rig, cfg, steps, frames=frames, extrinsics=False)
+    corr = PoseCorrections(reader, rig, cfg.model_copy(update={"lr": cfg.test_lr}), steps, frames=frames,
+                           extrinsics=False)
     frozen = GaussianScene(*(t.detach() for t in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
                                                   scene.sh)), scene.sh_degree)
     masks = {c: scene_mask(rig.cameras[c], rig.bev).to(torch.float32)[None, None] for c in {c for _, c in views}}
