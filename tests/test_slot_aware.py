@@ -244,16 +244,12 @@ def test_trainer_runs_photometric_then_slot_aware_iterations(tmp_path) -> None:
     assert all(math.isfinite(r["loss"]) and r["ipm_loss"] > 0 and r["cam_loss"] > 0 for r in records[2:])
 
 
-def test_trainer_without_a_detector_keeps_the_photometric_phase(tmp_path) -> None:
+def test_trainer_without_a_detector_keeps_the_photometric_phase(tiny_data, tmp_path) -> None:
+    from parksim.data import DatasetReader
     from recon.config import TrainConfig
     from recon.trainer import Trainer
 
-    class Reader:  # the trainer only needs these for its set-up
-        rig = avm_rig(48, 36, bev_px=64)
-        split = {"train": [0], "test": []}
-        poses = [torch.eye(4, dtype=torch.float64)]
-
     notes: list[str] = []
-    trainer = Trainer(Reader(), TrainConfig(), tmp_path, log=notes.append)
+    trainer = Trainer(DatasetReader(tiny_data), TrainConfig(), tmp_path, log=notes.append)
     assert trainer.slot_step is None and trainer.total_iterations == 20_000
     assert notes == ["slot-aware phase off: slot_aware.detector is not set"]
