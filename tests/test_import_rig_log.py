@@ -433,7 +433,13 @@ def _no_extrinsics(tiny: Path, log: Path, tmp: Path) -> list[str]:
     return ["--calib", str(tmp / "calib"), "--poses", str(log / "poses.csv"), "--images", str(log / "images")]
 
 
+def _sfm_flags(tiny: Path, log: Path, tmp: Path) -> list[str]:
+    return ["--calib", str(log / "calib"), "--poses", str(log / "poses.csv"), "--images", str(log / "images"),
+            "--scale", "2", "--camera-height", "1.2"]
+
+
 @pytest.mark.parametrize("spoil, message", [
+    (_sfm_flags, "--scale, --camera-height apply to per-image (SfM) poses fitted to a rig; this recording has ego"),
     (_non_unit_quaternion, "poses.csv line 6: quaternion (qw, qx, qy, qz) = [1.2, "),
     (_decreasing_time, "poses.csv line 7: timestamp 0.35 does not follow 0.4; timestamps must increase strictly"),
     (_wrong_size_image, "0000000000400000000.png: image is 100x80 but camera 'left' is calibrated at 160x120"),

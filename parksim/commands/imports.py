@@ -89,8 +89,12 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--rig {args.rig} has cameras {known.names}; the recording has {rec.rig.names}")
         fit = fit_rig(rec.camera_poses, rec.rig.names, known, args.scale, tol_m, tol_deg, args.camera_height)
         rec = fit.apply(rec)
-    elif args.scale is not None:
-        raise ValueError("--scale applies to per-image (SfM) poses; this recording has metric ego poses")
+    else:
+        given = [flag for flag, value in (("--scale", args.scale), ("--rig-tolerance", args.rig_tolerance),
+                                          ("--camera-height", args.camera_height)) if value is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)} apply to per-image (SfM) poses fitted to a rig; this recording "
+                             "has ego poses")
     report = write_recording(rec, args.output, args.format, args.test_every, args.overwrite, not args.quiet)
     print(json.dumps({k: v for k, v in report.items() if k != "dropped_items"}, indent=1))
     return 0
