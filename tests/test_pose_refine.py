@@ -147,7 +147,8 @@ def test_test_time_alignment_recovers_a_perturbed_pose(garage: tuple) -> None:
     reader = DatasetReader(data)
     frame = 1
     before = pose_error(reader.pose(frame), truth[frame])
-    corr = align_poses(scene, reader, rig, [(frame, "front"), (frame, "rear")], None, PoseRefineConfig(enabled=True), 60)
+    views = [(frame, "front"), (frame, "rear")]
+    corr = align_poses(scene, reader, rig, views, None, PoseRefineConfig(enabled=True), 60)
     after = pose_error(corr.ego_pose(frame).detach(), truth[frame])
     assert before == pytest.approx((EGO_CM, EGO_DEG))
     assert after[0] < 0.1 * EGO_CM and after[1] < 0.1 * EGO_DEG
