@@ -78,11 +78,28 @@ def perturb(clean: Path, out: Path) -> dict[int, torch.Tensor]:
     return deltas
 
 
-def _camera_errors(poses: dict[int, torch.Tensor], rig: Rig, truth: DatasetReader,
-                   frames: list[int]) -> dict[str, float]:
-    """Median and max error of every camera's world pose (ego pose times extrinsics): free of the gauge."""
-    errs = [pose_error(poses[f] @ rig.cameras[c].T_vehicle_camera,
-                       truth.pose(f) @ truth.rig.cameras[c].T_vehicle_camera) for f in frames for c in rig.names]
+def _world_fit(estimate: list[torch.Tensor], truth: list[torch.Tensor]) -> torch.Tensor:
+    """The rigid ``W`` taking the estimated camera centres closest to the true ones (Kabsch, least squares)."""
+    p, q = (torch.stack([T[:3, 3] for T in ts]) for ts in (estimate, truth))
+    pc, qc = p.mean(0), q.mean(0)
+    u, _, vt = torch.linalg.svd((p - pc).T @ (q - qc))
+    flip = torch.diag(torch.tensor([1.0, 1.0, float(torch.sign(torch.linalg.det(vt.T @ u.T)))], dtype=p.dtype))
+    W = torch.eye(4, dtype=p.dtype)
+    W[:3, :3] = vt.T @ flip @ u.T
+    W[:3, 3] = qc - W[:3, :3] @ pc
+    return W
+
+
+def _camera_errors(poses: dict[int, torch.Tensor], rig: Rig, truth: DatasetReader, frames: list[int],
+                   world_fit: bool = False) -> dict[str, float]:
+    """Median and max error of every camera's world pose (ego pose times extrinsics): free of the frames/extrinsics
+    gauge; ``world_fit`` first moves all estimates by the one rigid motion that fits them best (the scene's own
+    world frame is free too: Gaussians and cameras moved together render the same images)."""
+    views = [(f, c) for f in frames for c in rig.names]
+    est = [poses[f] @ rig.cameras[c].T_vehicle_camera for f, c in views]
+    true = [truth.pose(f) @ truth.rig.cameras[c].T_vehicle_camera for f, c in views]
+    W = _world_fit(est, true) if world_fit else torch.eye(4, dtype=torch.float64)
+    errs = [pose_error(W @ e, t) for e, t in zip(est, true)]
     return {"median_cm": statistics.median(e[0] for e in errs), "max_cm": max(e[0] for e in errs),
             "median_deg": statistics.median(e[1] for e in errs), "max_deg": max(e[1] for e in errs)}
 
@@ -143,6 +160,8 @@ def main() -> None:
         "test_after": _errors(_poses(results["aligned_test_poses"]), truth, test),
         "train_cameras_before": _camera_errors(recorded, given.rig, truth, train),
         "train_cameras_after": _camera_errors(_poses(refined), refined_rig, truth, train),
+        "train_cameras_after_world_fit": _camera_errors(_poses(refined), refined_rig, truth, train, world_fit=True),
+        "train_cameras_before_world_fit": _camera_errors(recorded, given.rig, truth, train, world_fit=True),
         "test_cameras_before": _camera_errors(recorded, given.rig, truth, test),
         "test_cameras_after": _camera_errors(_poses(results["aligned_test_poses"]), refined_rig, truth, test),
         **{f"extrinsics_{when}": {c: pose_error(r.cameras[c].T_vehicle_camera, truth.rig.cameras[c].T_vehicle_camera)
