@@ -72,7 +72,7 @@ class PoseCorrections:
         self.reader, self.rig, self.cfg, self.iterations = reader, rig, cfg, iterations
         self.per_image = not reader.has_vehicle_poses
         self.frames = frames = list(reader.frames if frames is None else frames)
-        self.keys: list[Key] = [(f, c) for f in frames for c in rig.names] if self.per_image else frames
+        self.keys: list[Key] = [(f, c) for f in frames for c in rig.names] if self.per_image else [f for f in frames]
         self.rows = {k: i for i, k in enumerate(self.keys)}
         self.extrinsics_on = (cfg.extrinsics if extrinsics is None else extrinsics) and not self.per_image
         self.poses = torch.zeros(len(self.keys), 6, dtype=torch.float64, requires_grad=True)
@@ -194,8 +194,8 @@ def align_poses(scene: GaussianScene, reader: DatasetReader, rig: Rig, views: Se
     frames = sorted({f for f, _ in views})
     corr = PoseCorrections(reader, rig, cfg.model_copy(update={"lr": cfg.test_lr}), steps, frames=frames,
                            extrinsics=False)
-    frozen = GaussianScene(*(t.detach() for t in (scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
-                                                  scene.sh)), scene.sh_degree)
+    frozen = GaussianScene(scene.means.detach(), scene.quats.detach(), scene.log_scales.detach(),
+                           scene.opacity_logits.detach(), scene.sh.detach(), scene.sh_degree)
     masks = {c: scene_mask(rig.cameras[c], rig.bev).to(torch.float32)[None, None] for c in {c for _, c in views}}
     targets = {(f, c): reader.image(c, f) for f, c in views}
     for step in range(steps):
