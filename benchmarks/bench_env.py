@@ -19,7 +19,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -95,11 +95,9 @@ def served(scenes: Path, ray: bool) -> Iterator[str]:
         while True:
             if proc.poll() is not None:
                 raise RuntimeError(f"{' '.join(cmd)} exited: {proc.stderr.read() if proc.stderr else ''}")
-            try:
+            with suppress(httpx.HTTPError):   # not listening yet
                 if httpx.get(f"{url}/healthz", timeout=2).status_code == 200:
                     break
-            except httpx.HTTPError:
-                pass
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{' '.join(cmd)} not healthy within 300 s")
             time.sleep(0.5)
