@@ -133,3 +133,12 @@ def test_fit_rig_says_when_poses_do_not_fit_a_rig(tmp_path: Path) -> None:
     r = DatasetReader(tmp_path / "ds")
     assert r.has_camera_poses and not r.has_vehicle_poses
     assert json.loads((tmp_path / "ds" / REPORT_FILE).read_text())["poses"] == "per-image only"
+
+
+def test_frame_number_is_the_last_integer_in_the_stem() -> None:
+    from parksim.importers.images import frame_number
+
+    assert frame_number("images/front/frame_00012.png", "x") == 12
+    assert frame_number("cam2_000007.jpg", "x") == 7
+    with pytest.raises(RecordingError, match=r"transforms.json frame 3: no frame number in the file name 'front.png'"):
+        frame_number("images/front.png", "transforms.json frame 3")

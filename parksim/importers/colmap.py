@@ -18,7 +18,6 @@ pycolmap. Conventions of the source and what becomes of them:
 from __future__ import annotations
 
 import argparse
-import re
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -27,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .images import Distortion, image_source
+from .images import Distortion, frame_number, image_source
 from .recording import Dropped, Recording, RecordingError
 
 __all__ = ["HELP", "DESCRIPTION", "ColmapError", "ColmapCamera", "ColmapImage", "ColmapModel", "read_model",
@@ -314,13 +313,6 @@ def _camera_names(model: ColmapModel) -> dict[int, str]:
     return names
 
 
-def _frame_id(model: ColmapModel, im: ColmapImage) -> int:
-    digits = re.findall(r"\d+", Path(im.name).stem)
-    if not digits:
-        raise ColmapError(f"{model.path}: image {im.name!r} has no frame number in its file name")
-    return int(digits[-1])
-
-
 def _images_dir(model_dir: Path, given: Path | None) -> Path:
     """``--images``, else ``images/`` beside the model, else beside its parent (COLMAP's ``sparse/0``)."""
     if given is not None:
@@ -349,7 +341,7 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
     rig = Rig({n: RigCamera(n, lenses[n][0], torch.eye(4, dtype=torch.float64)) for n in order}, BEVSpec())
     by_frame: dict[int, dict[str, ColmapImage]] = {}
     for im in sorted(model.images.values(), key=lambda im: im.name):
-        frame, camera = _frame_id(model, im), names[im.image_id]
+        frame, camera = frame_number(im.name, f"{model.path}: image {im.name!r}"), names[im.image_id]
         other = by_frame.setdefault(frame, {}).setdefault(camera, im)
         if other is not im:
             raise ColmapError(f"{model.path}: images {other.name!r} and {im.name!r} are both frame {frame} of "

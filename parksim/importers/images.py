@@ -4,6 +4,7 @@ pinhole when its lens has radial-tangential (Brown-Conrady) distortion."""
 from __future__ import annotations
 
 import functools
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,7 +12,16 @@ import numpy as np
 
 from .recording import ImageSource, RecordingError
 
-__all__ = ["Distortion", "undistortion_maps", "image_source"]
+__all__ = ["Distortion", "undistortion_maps", "image_source", "frame_number"]
+
+
+def frame_number(name: str, where: str) -> int:
+    """The frame an image file belongs to: the last integer in its stem (``frame_00012.png``, ``000012.png`` -> 12).
+    ``where`` names the entry at fault when there is none."""
+    digits = re.findall(r"\d+", Path(name).stem)
+    if not digits:
+        raise RecordingError(f"{where}: no frame number in the file name {Path(name).name!r}")
+    return int(digits[-1])
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,6 @@ import argparse
 import json
 import math
 import os
-import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .images import Distortion, image_source
+from .images import Distortion, frame_number, image_source
 from .recording import Dropped, Recording, RecordingError, check_pose
 
 if TYPE_CHECKING:
@@ -177,14 +176,6 @@ def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
     return M @ OPENGL_FROM_OPENCV
 
 
-def _frame_id(path: Path, where: str) -> int:
-    """The last integer in the file stem: ``frame_00012.png`` and ``000012.png`` are frame 12."""
-    digits = re.findall(r"\d+", path.stem)
-    if not digits:
-        raise RecordingError(f"{where}: no frame number in the file name {path.name!r}")
-    return int(digits[-1])
-
-
 def _image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding the pixels."""
     from PIL import Image as PILImage
@@ -218,7 +209,7 @@ def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
             w, h = _image_size(image)
             raise RecordingError(f"{where}: image is {w}x{h} but w, h say {lens.width}x{lens.height}")
         time = None if "time" not in frame else _number(frame, "time", where)
-        images.append(Image(image, _frame_id(image, where), time, lens, _pose(frame, where)))
+        images.append(Image(image, frame_number(image.name, where), time, lens, _pose(frame, where)))
     if len({im.time is None for im in images}) > 1:
         raise RecordingError(f"{file}: 'time' must be given for every frame or for none")
     return file, meta, images
