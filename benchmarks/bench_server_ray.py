@@ -20,19 +20,18 @@ import platform
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 import ray  # noqa: E402
+from bench_server import load  # noqa: E402  (the same load loop as the single-process benchmark)
 from fastapi import FastAPI  # noqa: E402
 from ray import serve  # noqa: E402
 
@@ -119,47 +118,6 @@ class CpuMeter:
 
 # --- load ----------------------------------------------------------------------------------------------------------
 
-def _pose(rng: np.random.Generator) -> str:
-    return f"{rng.uniform(8, 40):.3f},{rng.uniform(-0.5, 0.5):.3f},{rng.uniform(-0.3, 0.3):.4f}"
-
-
-def load(base: str, clients: int, duration: float) -> dict[str, Any]:
-    """``clients`` threads sending GET /render for ``duration`` s, a 503 retried after its Retry-After; latency is
-    from a render's first try to its 200 (retries included), as a client sees it."""
-    latencies: list[float] = []
-    counts = {"busy_503": 0, "errors": 0}
-    lock = threading.Lock()
-    stop = time.monotonic() + duration
-
-    def worker(i: int) -> None:
-        rng = np.random.default_rng(100 + i)
-        with httpx.Client(base_url=base, timeout=300) as c:
-            while time.monotonic() < stop:
-                first, params = time.perf_counter(), {**PARAMS, "pose": _pose(rng)}
-                while time.monotonic() < stop:
-                    try:
-                        r = c.get("/render", params=params)
-                    except httpx.HTTPError:
-                        r = None
-                    with lock:
-                        if r is not None and r.status_code == 200:
-                            latencies.append(time.perf_counter() - first)
-                            break
-                        counts["busy_503" if r is not None and r.status_code == 503 else "errors"] += 1
-                    time.sleep(float(r.headers.get("retry-after", 1)) if r is not None else 1.0)
-
-    threads = [threading.Thread(target=worker, args=(i,)) for i in range(clients)]
-    start = time.perf_counter()
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    seconds = time.perf_counter() - start
-    p50, p99 = np.percentile(latencies, [50, 99]) * 1000 if latencies else (float("nan"),) * 2
-    return {"ok": len(latencies), **counts, "seconds": seconds, "throughput": len(latencies) / seconds,
-            "p50": p50, "p99": p99}
-
-
 def warm(base: str, n: int) -> None:
     """Two rounds of ``n`` concurrent renders, so every replica has loaded its kernels and per-scale grids."""
     with concurrent.futures.ThreadPoolExecutor(n) as pool, httpx.Client(base_url=base, timeout=600) as c:
@@ -236,7 +194,7 @@ def ray_group(pid: int) -> str:
 def measure_ray(base: str, label: str, args: argparse.Namespace, n: int) -> dict[str, Any]:
     warm(base, 2 * n)
     with CpuMeter(tree(os.getpid()) + [os.getpid()], lambda p: "client" if p == os.getpid() else ray_group(p)) as m:
-        result = load(base, args.clients, args.duration)
+        result = load(base, PARAMS, args.clients, args.duration)
     return {"label": label, **result, "cpu": m.spent, "wall": m.wall, "rss_replicas": rss(replicas()),
             "rss_ray": rss([p for p in tree(os.getpid()) if ray_group(p) != "replicas"])}
 
@@ -266,7 +224,7 @@ def main() -> None:
         with serve_bundle(bundle, startup_s=600) as server:
             warm(server.base, 2)
             with CpuMeter([server.pid, os.getpid()], lambda p: "client" if p == os.getpid() else "server") as m:
-                result = load(server.base, args.clients, args.duration)
+                result = load(server.base, PARAMS, args.clients, args.duration)
             runs.append({"label": "single process (parksim serve)", **result, "cpu": m.spent, "wall": m.wall,
                          "rss_replicas": rss_mib(server.pid), "rss_ray": 0.0})
         port = free_port()
