@@ -84,8 +84,7 @@ def run(args: argparse.Namespace) -> int:
     rec = importer(args.format).load(args)
     if rec.poses is None and rec.camera_poses is not None:
         tol_m, tol_deg = args.rig_tolerance or (TOLERANCE_M, TOLERANCE_DEG)
-        if known is not None and sorted(known.names) != sorted(rec.rig.names) and \
-                not set(rec.rig.names) <= set(known.names):
+        if known is not None and not set(rec.rig.names) <= set(known.names):
             raise ValueError(f"--rig {args.rig} has cameras {known.names}; the recording has {rec.rig.names}")
         fit = fit_rig(rec.camera_poses, rec.rig.names, known, args.scale, tol_m, tol_deg, args.camera_height)
         rec = fit.apply(rec)
