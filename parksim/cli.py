@@ -20,8 +20,8 @@ __all__ = ["COMMANDS", "build_parser", "describe", "main"]
 prefer_sleeping_omp_threads()   # before any subcommand imports torch
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "import", "export", "reconstruct", "batch", "eval", "colmap", "detector", "render",
-            "ipm", "serve", "bench", "compact", "bundle"]
+COMMANDS = ["demo", "synth", "offpath", "import", "export", "reconstruct", "batch", "eval", "colmap", "detector",
+            "render", "ipm", "serve", "bench", "compact", "bundle"]
 
 _MODULES = {"import": "imports"}
 """Commands whose module has another name (``import`` is a Python keyword)."""
