@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numba
 import numpy as np
 import torch
 
@@ -23,7 +28,7 @@ from .rig import avm_rig, ego_box
 from .shading import Sensor, Shader
 from .trajectory import drive
 
-__all__ = ["SceneRenderer", "FrameRender", "generate", "scene_map", "GENERATOR_VERSION"]
+__all__ = ["SceneRenderer", "FrameRender", "generate", "write_frames", "usable_cores", "scene_map", "GENERATOR_VERSION"]
 
 GENERATOR_VERSION = "1.0.0"
 _N_SUB = TILE * TILE * SUB * SUB
@@ -62,8 +67,10 @@ class SceneRenderer:
         """T_world_camera of a camera at ego pose ``pose``."""
         return pose @ self.rig.cameras[name].T_vehicle_camera.numpy()
 
-    def render(self, pose: np.ndarray, frame: int, cameras: list[str] | None = None) -> dict[str, FrameRender]:
-        """Ray-cast each camera at ego pose ``pose`` (T_world_vehicle) with 2x2 supersampling."""
+    def render(self, pose: np.ndarray, frame: int, cameras: list[str] | None = None,
+               exposure_frame: int | None = None) -> dict[str, FrameRender]:
+        """Ray-cast each camera at ego pose ``pose`` (T_world_vehicle) with 2x2 supersampling; ``frame`` seeds the
+        sensor noise, ``exposure_frame`` (default ``frame``) picks the auto-exposure drift."""
         boxes = self.boxes_at(pose)
         out = {}
         for name in cameras or self.rig.names:
@@ -72,7 +79,7 @@ class SceneRenderer:
             radiance = rays.untile_sub(self.shader.radiance(hits.columns(slice(0, _N_SUB)), boxes))
             valid = rays.untile(rays.valid[:, _N_SUB:])
             centre = hits.columns(slice(_N_SUB, None))
-            image = self.sensor(name, frame, radiance, valid)
+            image = self.sensor(name, frame, radiance, valid, exposure_frame)
             out[name] = FrameRender(image, rays.untile(centre.t).astype(np.float32) * valid,
                                     rays.untile(centre.prim), valid)
         return out
@@ -106,22 +113,95 @@ def scene_map(garage: Garage) -> dict[str, Any]:
             "lights": [{"x": L.x, "y": L.y, "z": garage.height, "intensity": L.intensity} for L in garage.lights]}
 
 
-def _write_frame(writer: DatasetWriter, renderer: SceneRenderer, ipm: IPM, weights: dict[str, np.ndarray],
-                 mask: np.ndarray, pose: np.ndarray, frame: int) -> None:
-    views = renderer.render(pose, frame)
-    for name, v in views.items():
-        writer.image(name, frame, v.image)
-        writer.depth(name, frame, v.depth)
-    bev = ipm({n: torch.from_numpy(v.image) for n, v in views.items()})
-    writer.ipm(frame, bev)
-    origins = {n: renderer.camera_pose(pose, n)[:3, 3] for n in renderer.rig.names}
-    writer.labels(frame, frame_labels(renderer.garage, pose, renderer.rig.bev, weights, mask, origins,
-                                      renderer.boxes_at(pose)))
+class _FrameWriter:
+    """Renders frames of one preset and writes their images, depth, IPM BEV and labels into one dataset."""
+
+    def __init__(self, preset: ScenePreset, root: Path) -> None:
+        self.renderer = SceneRenderer(preset)
+        self.writer = DatasetWriter(root)
+        self.ipm = IPM(self.renderer.rig)
+        self.weights = {n: w.numpy() for n, w in self.ipm.weights.items()}
+        self.mask = self.ipm.mask.numpy()
+
+    def write(self, pose: np.ndarray, frame: int, exposure_frame: int) -> None:
+        """Render ``pose``, write everything under ``frame``'s file names."""
+        renderer = self.renderer
+        views = renderer.render(pose, frame, exposure_frame=exposure_frame)
+        for name, v in views.items():
+            self.writer.image(name, frame, v.image)
+            self.writer.depth(name, frame, v.depth)
+        self.writer.ipm(frame, self.ipm({n: torch.from_numpy(v.image) for n, v in views.items()}))
+        origins = {n: renderer.camera_pose(pose, n)[:3, 3] for n in renderer.rig.names}
+        self.writer.labels(frame, frame_labels(renderer.garage, pose, renderer.rig.bev, self.weights, self.mask,
+                                               origins, renderer.boxes_at(pose)))
+
+
+_WORKER: _FrameWriter | None = None
+"""The pool worker's own renderer and writer, built once by ``_init_worker``."""
+
+
+def _init_worker(preset: ScenePreset, root: Path) -> None:
+    """Pool initializer: one thread per worker (the pool supplies the parallelism), then the renderer."""
+    global _WORKER
+    numba.set_num_threads(1)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    _WORKER = _FrameWriter(preset, root)
+
+
+def _work(pose: np.ndarray, frame: int, exposure_frame: int) -> None:
+    assert _WORKER is not None, "pool worker used before its initializer ran"
+    _WORKER.write(pose, frame, exposure_frame)
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def write_frames(preset: ScenePreset, writer: DatasetWriter, poses: np.ndarray, frames: Sequence[int],
+                 workers: int | None = None, progress: Callable[[int], Any] | None = None,
+                 exposure_frames: Sequence[int] | None = None) -> None:
+    """Render each pose, name the files by the matching frame id (also used for per-frame noise seeds), write
+    images, depth, IPM BEV and labels; ``workers`` None = all usable cores, 1 = serial in-process.
+
+    ``exposure_frames``: the frame index whose auto-exposure drift each view uses (default: ``frames``), so an
+    off-path view can share its recorded base frame's exposure. Frames are independent, so a process pool
+    (spawned: numba and torch threads do not survive a fork) writes byte-identical files to a serial run.
+    """
+    frames = [int(f) for f in frames]
+    exposure = frames if exposure_frames is None else [int(f) for f in exposure_frames]
+    if not (len(poses) == len(frames) == len(exposure)):
+        raise ValueError(f"write_frames: {len(poses)} poses, {len(frames)} frame ids and {len(exposure)} exposure "
+                         "frames: expected one each per view")
+    if workers is not None and workers < 1:
+        raise ValueError(f"write_frames: workers must be at least 1, got {workers}")
+    n = min(usable_cores() if workers is None else workers, len(frames))
+    jobs = list(zip(np.asarray(poses, np.float64), frames, exposure))
+    if n <= 1:
+        local = _FrameWriter(preset, writer.layout.root)
+        for job in jobs:
+            local.write(*job)
+            if progress is not None:
+                progress(1)
+        return
+    with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker,
+                             initargs=(preset, writer.layout.root)) as pool:
+        pending = [pool.submit(_work, *job) for job in jobs]
+        try:
+            for done in as_completed(pending):
+                done.result()
+                if progress is not None:
+                    progress(1)
+        except BaseException:
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
 
 def generate(preset: ScenePreset, out: str | Path, overwrite: bool = False,
-             progress: Callable[[int], Any] | None = None) -> Path:
-    """Write the scene of ``preset`` to ``out`` atomically; ``progress(n)`` is told of each finished frame.
+             progress: Callable[[int], Any] | None = None, workers: int | None = None) -> Path:
+    """Write the scene of ``preset`` to ``out`` atomically; ``progress(n)`` is told of each finished frame;
+    ``workers`` as in ``write_frames``.
 
     An existing ``out`` without ``overwrite`` fails before any work.
     """
@@ -129,18 +209,12 @@ def generate(preset: ScenePreset, out: str | Path, overwrite: bool = False,
         raise FileExistsError(f"{out} already exists (pass overwrite=True to replace it)")
     renderer = SceneRenderer(preset)
     poses, stamps = drive(renderer.garage, preset.trajectory, preset.frames)
-    ipm = IPM(renderer.rig)
-    weights = {n: w.numpy() for n, w in ipm.weights.items()}
-    mask = ipm.mask.numpy()
     with atomic_directory(out, overwrite=overwrite) as tmp:
         writer = DatasetWriter(tmp)
         writer.rig(renderer.rig)
         writer.poses(poses, stamps)
         writer.map(scene_map(renderer.garage))
-        for i, pose in enumerate(poses):
-            _write_frame(writer, renderer, ipm, weights, mask, pose, i)
-            if progress is not None:
-                progress(1)
+        write_frames(preset, writer, poses, range(len(poses)), workers, progress)
         xyz, rgb, normals = sample_points(renderer.garage, renderer.shader, renderer.boxes_at(poses[0]),
                                           renderer.materials, poses, preset.points, preset.layout.seed)
         writer.points(xyz, rgb, normals)

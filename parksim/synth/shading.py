@@ -257,9 +257,11 @@ class Sensor:
             return 1.0
         return self.gain[name] * (1.0 + 0.04 * math.sin(0.07 * frame + self.phase[name]))
 
-    def __call__(self, name: str, frame: int, radiance: np.ndarray, valid: np.ndarray) -> np.ndarray:
-        """Linear radiance [H, W, 3] -> float32 display image in [0, 1], black outside the lens circle."""
-        img = radiance * (1.25 * self.exposure(name, frame))
+    def __call__(self, name: str, frame: int, radiance: np.ndarray, valid: np.ndarray,
+                 exposure_frame: int | None = None) -> np.ndarray:
+        """Linear radiance [H, W, 3] -> float32 display image in [0, 1], black outside the lens circle; ``frame``
+        seeds the noise, ``exposure_frame`` (default ``frame``) sets the auto-exposure drift."""
+        img = radiance * (1.25 * self.exposure(name, frame if exposure_frame is None else exposure_frame))
         if self.options.vignetting:
             img = img * self.vignette[name]
         img = to_srgb(img)
