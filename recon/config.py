@@ -8,10 +8,10 @@ Presets ship inside the package (``parksim/configs/NAME.yaml``), so ``--config t
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .slot_aware.config import SlotAwareConfig
 
@@ -107,6 +107,9 @@ class RunConfig(_Strict):
     seed: int = 0
     batch_size: int = Field(1, gt=0, description="(frame, camera) views rendered per iteration")
     backend: Literal["auto", "torch", "numba"] = "auto"
+    projection: Literal["ut", "ewa"] = Field("ut", description="2D footprints: the unscented transform through the "
+                                             "exact lens (ParkGaussian, 3DGUT) or the first-order Jacobian (EWA: "
+                                             "vanilla 3DGS through a fisheye Jacobian, as FisheyeGS); a baseline knob")
     log_every: int = Field(10, gt=0)
     checkpoint_every: int = Field(1000, gt=0)
     eval_every: int = Field(0, ge=0, description="test-frame PSNR/SSIM every this many iterations (0: never)")
@@ -144,6 +147,13 @@ class TrainConfig(_Strict):
     densify: DensifyConfig = DensifyConfig()
     pose_opt: PoseRefineConfig = PoseRefineConfig()
 
+    @model_validator(mode="after")
+    def _ut_for_slot_aware(self) -> TrainConfig:
+        """The slot-aware phase renders with the unscented transform; EWA is a photometric-only baseline."""
+        if self.run.projection != "ut" and self.slot_aware.iterations:
+            raise ValueError("run.projection: ewa is a photometric-only baseline; set slot_aware.iterations: 0")
+        return self
+
     @property
     def schedule_iterations(self) -> int:
         """Length of the learning-rate schedule: both phases."""
@@ -152,7 +162,11 @@ class TrainConfig(_Strict):
 
 def _format_errors(err: ValidationError) -> str:
     """One line per problem: dotted key path and pydantic's message."""
-    return "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in err.errors())
+    def one(e: Any) -> str:
+        where = ".".join(str(p) for p in e["loc"])
+        return f"{where}: {e['msg']}" if where else str(e["msg"]).removeprefix("Value error, ")
+
+    return "; ".join(one(e) for e in err.errors())
 
 
 def parse_config(data: object, source: str) -> TrainConfig:

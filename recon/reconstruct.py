@@ -94,6 +94,7 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         ego = ego if ego is None else np.array([f["T_world_vehicle"] for f in poses["frames"]])
     meta = {"dataset": str(Path(data_dir).resolve()), "phase": phase, "iterations": trainer.step,
             "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
+            "projection": config.run.projection,
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
             "recorded_path": recorded_path(ego) if ego is not None else None,
             "poses": "ego" if reader.has_vehicle_poses else "camera",

@@ -207,7 +207,8 @@ class Trainer:
             frame, camera = self.views[i]
             pose = (self.reader.view_pose(camera, frame) if self.corrections is None
                     else self.corrections.view_pose(camera, frame))
-            image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend).images[camera]
+            image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend,
+                           method=self.cfg.run.projection).images[camera]
             batch.preds.append(self.response(image, camera))
             batch.gts.append(self._image(frame, camera))
             batch.masks.append(self.masks[camera])
