@@ -9,7 +9,7 @@ from .argtypes import integer, number, resolution
 
 __all__ = ["add_parser", "run"]
 
-PRESET_NAMES = ["scene1", "scene2", "scene3", "scene4", "tiny"]
+PRESET_NAMES = ["scene1", "scene2", "scene3", "scene4", "worn", "busy", "tiny"]
 MAX_SIDE = 2048
 """Largest fisheye image side and BEV side (px): 2048x2048 needs about 6 GiB while ray casting (~1.4 KiB/px)."""
 MAX_POINTS = 10_000_000
@@ -26,8 +26,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "(uint16 mm along the ray), map.json, points3d.ply, split.json (every 10th frame is test), "
                     "meta.json. The output appears only when complete (written to a temp dir, then renamed).")
     p.add_argument("preset", choices=PRESET_NAMES,
-                   help="scene1..scene4: benchmark garages (layouts, lighting, seeds differ); "
-                        "tiny: 12 frames at 160x120 for tests")
+                   help="scene1..scene4: clean benchmark garages (layouts, lighting, seeds differ); worn: dim, "
+                        "faded and dirty markings, stains, wet patches; busy: nearly full of varied cars, clutter, "
+                        "glossy floor, uneven exposure, motion blur (docs/synth.md); tiny: 12 frames at 160x120 "
+                        "for tests")
     p.add_argument("-o", "--output", type=Path, required=True,
                    help="output dataset directory (must not exist unless --overwrite)")
     p.add_argument("--frames", type=integer(1), help="number of frames at 10 Hz (preset default: 100; tiny: 12)")
@@ -43,6 +45,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-exposure", action="store_true", help="same exposure in every camera and frame")
     p.add_argument("--no-vignetting", action="store_true", help="no lens vignetting")
     p.add_argument("--no-noise", action="store_true", help="no sensor noise")
+    p.add_argument("--motion-blur", metavar="SECONDS", type=number(0, 0.1),
+                   help="shutter time for motion blur, 0 to 0.1 s (preset default: 0; busy: 1/60 s); 0 = none")
     p.add_argument("--workers", type=integer(1),
                    help="processes rendering frames in parallel (default: all usable cores; 1 = serial, in "
                         "this process); the output is byte-identical whatever the count")
@@ -59,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from ..synth import generate, get_preset
-    from ..synth.shading import SensorOptions
     from .outputs import check_output_folder
 
     check_output_folder(args.output, overwrite=args.overwrite)
@@ -76,8 +79,10 @@ def run(args: argparse.Namespace) -> int:
     layout = {k: v for k, v in (("length", args.length), ("seed", args.seed)) if v is not None}
     if layout:
         changes["layout"] = dataclasses.replace(preset.layout, **layout)
-    changes["sensor"] = SensorOptions(exposure=not args.no_exposure, vignetting=not args.no_vignetting,
-                                      noise=not args.no_noise)
+    sensor = {"exposure": not args.no_exposure, "vignetting": not args.no_vignetting, "noise": not args.no_noise}
+    if args.motion_blur is not None:
+        sensor["motion_blur"] = args.motion_blur
+    changes["sensor"] = dataclasses.replace(preset.sensor, **sensor)
     preset = dataclasses.replace(preset, **changes)
     start = time.perf_counter()
     with tqdm(total=preset.frames, desc=f"synth {preset.name}", unit="frame", disable=args.quiet) as bar:

@@ -23,14 +23,15 @@ from .labels import frame_labels
 from .layout import Box, Garage, build_garage
 from .points import sample_points
 from .presets import ScenePreset
-from .raycast import SUB, TILE, BoxSet, TiledRays, trace_camera
+from .raycast import SUB, TILE, BoxSet, Hits, TiledRays, trace_camera
 from .rig import avm_rig, ego_box
 from .shading import Sensor, Shader
 from .trajectory import drive
 
 __all__ = ["SceneRenderer", "FrameRender", "generate", "write_frames", "usable_cores", "scene_map", "GENERATOR_VERSION"]
 
-GENERATOR_VERSION = "1.0.0"
+GENERATOR_VERSION = "1.1.0"
+"""1.1: the worn and busy presets and their knobs (scene1-4 render as in 1.0), frames rendered by a process pool."""
 _N_SUB = TILE * TILE * SUB * SUB
 
 
@@ -75,7 +76,7 @@ class SceneRenderer:
         out = {}
         for name in cameras or self.rig.names:
             rays = self.rays[name]
-            hits = trace_camera(self.camera_pose(pose, name), rays, boxes, self.garage.height)
+            hits = self._trace(pose, name, boxes)
             radiance = rays.untile_sub(self.shader.radiance(hits.columns(slice(0, _N_SUB)), boxes))
             valid = rays.untile(rays.valid[:, _N_SUB:])
             centre = hits.columns(slice(_N_SUB, None))
@@ -83,6 +84,30 @@ class SceneRenderer:
             out[name] = FrameRender(image, rays.untile(centre.t).astype(np.float32) * valid,
                                     rays.untile(centre.prim), valid)
         return out
+
+
+    def _trace(self, pose: np.ndarray, name: str, boxes: BoxSet) -> Hits:
+        """All rays of camera ``name`` at ``pose``. With motion blur (``SensorOptions.motion_blur`` s of shutter),
+        each of a pixel's 2x2 colour sub-samples is traced at its own instant of the shutter interval centred on
+        the frame, the ego driving at the preset's speed along its heading (exact on straight stretches; the yaw
+        rate is ignored); the centre rays (depth, ids) stay at the frame's pose."""
+        rays = self.rays[name]
+        travel = self.preset.sensor.motion_blur * self.preset.trajectory.speed
+        if travel <= 0:
+            return trace_camera(self.camera_pose(pose, name), rays, boxes, self.garage.height)
+        hits = trace_camera(self.camera_pose(pose, name), rays, boxes, self.garage.height,
+                            np.arange(_N_SUB, rays.rays.shape[1]))
+        parts = [hits]
+        k = SUB * SUB
+        for j in range(k):
+            moved = pose.copy()
+            moved[:3, 3] += pose[:3, 0] * travel * ((j + 0.5) / k - 0.5)
+            parts.insert(j, trace_camera(self.camera_pose(moved, name), rays, self.boxes_at(moved),
+                                         self.garage.height, np.arange(j, _N_SUB, k)))
+        order = np.argsort(np.concatenate([np.arange(j, _N_SUB, k) for j in range(k)] +
+                                          [np.arange(_N_SUB, rays.rays.shape[1])]))
+        join = lambda name: np.concatenate([getattr(h, name) for h in parts], 1)[:, order]  # noqa: E731
+        return Hits(join("t"), join("prim"), join("face"), join("points"), join("dirs"))
 
 
 def _box_dict(b: Box, kind: str) -> dict[str, Any]:
@@ -101,6 +126,7 @@ def scene_map(garage: Garage) -> dict[str, Any]:
                       "occupied": s.occupied, "corners": corners})
     obstacles = [_box_dict(b, "pillar") for b in garage.boxes if b.material == "pillar"]
     obstacles += [_box_dict(b, "car") for b in garage.cars]
+    obstacles += [_box_dict(b, "clutter") for b in garage.boxes if b.material == "clutter"]
     walls = [b for b in garage.boxes if b.material == "wall"]
     obstacles += [_box_dict(b, "wall") for b in walls]
     x0, x1, y0, y1 = 0.0, garage.length, garage.y_min, garage.y_max

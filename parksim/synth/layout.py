@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Box", "Paint", "MarkingPoint", "Slot", "Light", "Garage", "LayoutParams", "build_garage",
+__all__ = ["Box", "Paint", "MarkingPoint", "Slot", "Light", "Garage", "LayoutParams", "Decal", "FloorText",
+           "build_garage",
            "AISLE_WIDTH", "CROSS_AISLE"]
 
 AISLE_WIDTH = 6.0
@@ -116,11 +117,44 @@ class Garage:
     cars: list[Box] = field(default_factory=list)
     line_width: float = 0.15
     ambient: float = 0.12
+    params: LayoutParams = field(default_factory=lambda: LayoutParams())
+    decals: list[Decal] = field(default_factory=list)
+    floor_text: list[FloorText] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Decal:
+    """A sign or painted text on a box face: box index, face (0..3: +x, -x, +y, -y), centre ``u`` (m, to the right
+    as seen facing the face, from the box centre) and ``z``, size, text, ink and panel colours (no panel: None)."""
+
+    box: int
+    face: int
+    u: float
+    z: float
+    width: float
+    height: float
+    text: str
+    ink: tuple[float, float, float]
+    panel: tuple[float, float, float] | None
+
+
+@dataclass(frozen=True)
+class FloorText:
+    """Text painted on the floor: centre (x, y), ``heading`` (rad) its reading direction, letter height (m)."""
+
+    x: float
+    y: float
+    heading: float
+    height: float
+    text: str
+    color: str
 
 
 @dataclass(frozen=True)
 class LayoutParams:
-    """Knobs of one garage: size, slot mix, paint, occupancy, lighting."""
+    """Knobs of one garage: size, slot mix, paint, occupancy, lighting, and the real-garage dressing (varied cars,
+    clutter, signage, worn paint, stains, wet and glossy floor) whose defaults (all off) keep scene1-4 as they were.
+    docs/synth.md gives each knob's range and the property of real garages it imitates."""
 
     seed: int = 0
     length: float = 48.0
@@ -135,6 +169,17 @@ class LayoutParams:
     broken_lights: float = 0.1
     ambient: float = 0.12
     line_width: float = 0.16
+    light_falloff: float = 4.0
+    car_variety: float = 0.0
+    clutter: float = 0.0
+    signage: bool = False
+    paint_fade: float = 0.0
+    paint_scuff: float = 0.0
+    tyre_marks: float = 0.0
+    stains: float = 0.0
+    wet_patches: float = 0.0
+    floor_gloss: float = 0.0
+    grime: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.length) and self.length >= MIN_LENGTH):
@@ -142,6 +187,14 @@ class LayoutParams:
                              f"and a bay), got {self.length:g}")
         if self.aisles < 1:
             raise ValueError(f"a garage needs at least one aisle, got {self.aisles}")
+        shares = {k: getattr(self, k) for k in ("car_variety", "clutter", "paint_fade", "paint_scuff", "tyre_marks",
+                                                 "floor_gloss", "grime")}
+        bad = [f"{k} {v:g}" for k, v in shares.items() if not 0.0 <= v <= 1.0]
+        bad += [f"{k} {v:g}" for k, v in (("stains", self.stains), ("wet_patches", self.wet_patches),
+                                           ("light_falloff", self.light_falloff)) if not 0.0 <= v <= 20.0]
+        if bad:
+            raise ValueError(f"layout parameters out of range: {', '.join(bad)} (shares lie in [0, 1]; stains, "
+                             "wet_patches and light_falloff in [0, 20])")
 
 
 def _segment(p0: np.ndarray, p1: np.ndarray, width: float, color: str) -> Paint:
@@ -180,6 +233,8 @@ class _RowBuilder:
     def __init__(self, garage: Garage, params: LayoutParams, rng: np.random.Generator, edge: float, side: int):
         self.g, self.p, self.rng, self.edge, self.side = garage, params, rng, edge, side
         self.color = "yellow" if rng.random() < params.yellow_fraction else "white"
+        # the varied cars draw from their own stream, so the classic layouts' draws stay as they were
+        self.car_rng = np.random.default_rng([params.seed, 101, int(round(edge * 100)) + 10_000])
 
     def bay(self, x0: float, kind: str, n: int) -> float:
         """Paint ``n`` slots of ``kind`` starting at ``x0``; return the x where the bay's paint ends."""
@@ -230,6 +285,18 @@ class _RowBuilder:
         hue = self.rng.choice(np.array([[0.8, 0.8, 0.82], [0.12, 0.12, 0.13], [0.55, 0.1, 0.08], [0.15, 0.25, 0.5],
                                         [0.45, 0.46, 0.48], [0.7, 0.68, 0.6], [0.85, 0.85, 0.85]]))
         color = (float(hue[0]), float(hue[1]), float(hue[2]))
+        if self.car_rng.random() < self.p.car_variety:
+            from . import cars  # cars builds on Box: imported here, not at the top, to avoid an import cycle
+
+            shape = cars.random_shape(self.car_rng)
+            if kind == "parallel" or shape.length <= depth - 0.1:  # a long pickup or van only where it fits
+                jitter = self.car_rng.normal(0.0, 0.04, 3)
+                color = tuple(float(v) for v in np.clip(cars.PALETTE[self.car_rng.integers(len(cars.PALETTE))]
+                                                        * (1.0 + jitter), 0.02, 0.95))  # type: ignore[assignment]
+                self.g.boxes.extend(cars.car_boxes(shape, float(centre[0]), float(centre[1]), yaw, color))
+                self.g.cars.append(Box(float(centre[0]), float(centre[1]), 0.0, shape.height, shape.length,
+                                       shape.width, yaw, "car", color))
+                return
         self.g.boxes.extend(_car_boxes(float(centre[0]), float(centre[1]), yaw, color))
         self.g.cars.append(Box(float(centre[0]), float(centre[1]), 0.0, _CAR[2], _CAR[0], _CAR[1], yaw, "car", color))
 
@@ -260,7 +327,7 @@ def build_garage(params: LayoutParams) -> Garage:
     lanes = [i * (AISLE_WIDTH + 2 * depth) for i in range(params.aisles)]
     y_min, y_max = lanes[0] - half - depth - 0.4, lanes[-1] + half + depth + 0.4
     g = Garage(params.length, y_min, y_max, params.height, lanes=lanes, line_width=params.line_width,
-               ambient=params.ambient)
+               ambient=params.ambient, params=params)
     x0, x1 = CROSS_AISLE, params.length - CROSS_AISLE
     for lane in lanes:
         for side in (-1, 1):
@@ -286,4 +353,7 @@ def build_garage(params: LayoutParams) -> Garage:
             g.lights.append(Light(float(x), float(y), intensity))
             g.boxes.append(Box(float(x), float(y), H - 0.08, H, 1.25, 0.16, 0.0,
                                "fixture" if on else "fixture_off"))
+    from .dressing import dress  # dressing builds on this module's types: imported here to avoid a cycle
+
+    dress(g, params)
     return g

@@ -218,11 +218,15 @@ def _run(origin: np.ndarray, R: np.ndarray, rays: np.ndarray, valid: np.ndarray,
     return Hits(t, prim, face, origin + t[..., None] * dirs, dirs)
 
 
-def trace_camera(T_world_camera: np.ndarray, rays: TiledRays, boxes: BoxSet, ceiling: float) -> Hits:
-    """Trace all of one camera's tiled rays from its world pose (4x4)."""
+def trace_camera(T_world_camera: np.ndarray, rays: TiledRays, boxes: BoxSet, ceiling: float,
+                 columns: np.ndarray | None = None) -> Hits:
+    """Trace one camera's tiled rays (all, or the given ``columns`` of every tile) from its world pose (4x4)."""
     origin, R = T_world_camera[:3, 3], T_world_camera[:3, :3]
     ptr, idx = _cull(origin, R, rays, boxes)
-    return _run(origin, R, rays.rays, rays.valid, ptr, idx, boxes, ceiling)
+    if columns is None:
+        return _run(origin, R, rays.rays, rays.valid, ptr, idx, boxes, ceiling)
+    return _run(origin, R, np.ascontiguousarray(rays.rays[:, columns]), np.ascontiguousarray(rays.valid[:, columns]),
+                ptr, idx, boxes, ceiling)
 
 
 def trace_world(origin: np.ndarray, dirs: np.ndarray, boxes: BoxSet, ceiling: float) -> Hits:
