@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from parksim.bundle import load
 from parksim.data import DatasetReader
@@ -104,6 +105,31 @@ def test_paper_defaults_are_the_shipped_config() -> None:
     assert (config.photometric.iterations, config.slot_aware.iterations) == (20_000, 10_000)
     assert config.photometric.ssim_lambda == 0.2 and config.lr.means_final_factor == 0.01
     load_config("cpu_fast")
+
+
+def test_the_30_minute_presets_differ_only_where_their_rows_do() -> None:
+    """cpu_30min_ewa is cpu_30min but for the projection; the slot-aware one can start --from a cpu_30min run."""
+    base, ewa, slot = (load_config(n) for n in ("cpu_30min", "cpu_30min_ewa", "cpu_30min_slot_aware"))
+    assert (base.run.projection, ewa.run.projection) == ("ut", "ewa")
+    assert ewa.model_copy(update={"run": ewa.run.model_copy(update={"projection": "ut"})}) == base
+    assert all(getattr(slot, k) == getattr(base, k) for k in ("run", "init", "lr", "photometric", "densify"))
+    assert base.slot_aware.iterations == 0 and slot.slot_aware.iterations > 0
+
+
+def test_ewa_projection_is_a_photometric_baseline_the_bundle_records(full_run: Path, tiny_data: Path,
+                                                                     tmp_path: Path) -> None:
+    config = load_config(TINY).model_dump(mode="json")
+    config["run"]["projection"] = "ewa"
+    path = tmp_path / "ewa.yaml"
+    path.write_text(yaml.safe_dump(config))
+    out = reconstruct(tiny_data, tmp_path / "ewa", path, log=lambda s: None)
+    assert load(out).meta["projection"] == "ewa" and load(full_run).meta["projection"] == "ut"
+    first = [read_metrics(run / "metrics.jsonl")[0]["rgb_loss"] for run in (out, full_run)]
+    assert first[0] != first[1]   # same seed and views: only the footprints differ
+    config["slot_aware"]["iterations"] = 5
+    path.write_text(yaml.safe_dump(config))
+    with pytest.raises(ConfigError, match="photometric-only baseline"):
+        load_config(path)
 
 
 def test_relocation_keeps_opacity_and_is_identity_for_one_copy() -> None:
