@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,12 +21,13 @@ from parksim.rig import Rig
 from .config import PoseRefineConfig
 from .masks import scene_mask
 from .metrics import psnr, slot_region_mask, slot_segments, ssim
+from .plots import plot_offpath
 from .pose_refine import POSES_KEY, PoseCorrections, align_poses
 
 if TYPE_CHECKING:
     from parksim.bundle import Bundle
 
-__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize"]
+__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize", "group_means"]
 
 Response = Callable[[Tensor, str], Tensor]
 ViewPose = Callable[[str, int], Tensor]
@@ -55,12 +56,27 @@ class EvalReport:
         return statistics.fmean(vals) if vals else None
 
 
+_SCORES = ("psnr", "ssim", "slot_psnr", "slot_ssim")
+
+
 def summarize(report: EvalReport, cameras: list[str], frames: list[int]) -> dict[str, Any]:
     """Overall, per-camera and per-frame means of every score."""
-    keys = ("psnr", "ssim", "slot_psnr", "slot_ssim")
+    keys = _SCORES
     return {"overall": {k: report.mean(k) for k in keys},
             "per_camera": {c: {k: report.mean(k, camera=c) for k in keys} for c in cameras},
             "per_frame": {str(f): {k: report.mean(k, frame=f) for k in keys} for f in frames}}
+
+
+def group_means(report: EvalReport, groups: Mapping[str, Sequence[int]]) -> dict[str, dict[str, Any]]:
+    """Means of every score over the views of each group of frames, with the view counts behind them
+    (``views``; ``slot_views``: those with slot pixels)."""
+    out = {}
+    for label, frames in groups.items():
+        keep = set(frames)
+        sub = EvalReport([v for v in report.views if v["frame"] in keep])
+        out[label] = {"views": len(sub.views), "slot_views": sum(v.get("slot_psnr") is not None for v in sub.views),
+                      **{k: sub.mean(k) for k in _SCORES}}
+    return out
 
 
 @torch.no_grad()
@@ -110,13 +126,57 @@ def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int,
                                            f"for {steps} Adam steps with the Gaussians frozen, then scored")
 
 
+def _score_split(bundle: Bundle, reader: DatasetReader, response: Response, backend: str, align_steps: int | None,
+                 side_by_side: Path | None = None) -> tuple[EvalReport, Rig, PoseCorrections | None, str]:
+    """Every test view of ``reader`` scored as ``evaluate_bundle`` scores them (pose-refined bundles aligned first)."""
+    views = [(f, c) for f in reader.split["test"] for c in reader.rig.names]
+    rig, aligned, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
+    view_pose = aligned.view_pose if aligned is not None else None
+    report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=side_by_side, rig=rig,
+                            view_pose=view_pose)
+    return report, rig, aligned, alignment
+
+
+def offpath_split(data_dir: Path) -> Path | None:
+    """The dataset's off-path split folder (``parksim offpath``), or None when it has none."""
+    from parksim.synth.offpath import OFFPATH_DIR, OFFPATH_FILE
+
+    split = Path(data_dir) / OFFPATH_DIR
+    return split if (split / OFFPATH_FILE).is_file() else None
+
+
+def _offpath(bundle: Bundle, split: Path, response: Response, backend: str, align_steps: int | None,
+             on_path: EvalReport) -> dict[str, Any]:
+    """Scores on the off-path split grouped by kind and offset, beside the on-path reference (the recorded test
+    views ``on_path``); per-view rows carry their pose's kind and signed offset."""
+    from parksim.synth.offpath import group_frames, read_offpath
+
+    reader = DatasetReader(split)
+    info = read_offpath(split)
+    descriptors = {d["frame"]: d for d in info["frames"]}
+    report, _, _, alignment = _score_split(bundle, reader, response, backend, align_steps)
+    groups = group_frames(list(descriptors.values()))
+    means = group_means(report, {label: g["frames"] for label, g in groups.items()})
+    on_frames = sorted({v["frame"] for v in on_path.views})
+    reference = {"frames": len(on_frames), **group_means(on_path, {"on path": on_frames})["on path"]}
+    return {"dataset": str(split), "pose_alignment": alignment,
+            "skipped": info["skipped"],
+            "on_path": reference,
+            "groups": [{"group": label, "kind": g["kind"], "offset": g["offset"], "frames": len(g["frames"]),
+                        **means[label]} for label, g in groups.items()],
+            "views": [{**v, "kind": descriptors[v["frame"]]["kind"], "offset": descriptors[v["frame"]]["offset"]}
+                      for v in report.views]}
+
+
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
                     lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None,
-                    align_steps: int | None = None) -> dict[str, Any]:
+                    align_steps: int | None = None, offpath: bool = True) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
 
     A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off);
-    eval.json then holds them as ``aligned_test_poses`` (poses.json schema)."""
+    eval.json then holds them as ``aligned_test_poses`` (poses.json schema). With ``offpath`` and an off-path split
+    in the dataset (``parksim offpath``), its views are scored the same way and grouped by offset: eval.json's
+    ``offpath``, a table in eval.md and ``offpath.png``."""
     from parksim.bundle import load
     from parksim.fileio import write_json
 
@@ -128,12 +188,10 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     frames = reader.split["test"]
     if not frames:
         raise ValueError(f"{data_dir}: no test frames in split.json")
-    views = [(f, c) for f in frames for c in reader.rig.names]
-    rig, aligned, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
-    view_pose = aligned.view_pose if aligned is not None else None
     (out_dir / "renders").mkdir(parents=True, exist_ok=True)
-    report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=out_dir / "renders",
-                            rig=rig, view_pose=view_pose)
+    report, rig, aligned, alignment = _score_split(bundle, reader, response, backend, align_steps,
+                                                   out_dir / "renders")
+    view_pose = aligned.view_pose if aligned is not None else None
     if lpips is not None:
         masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}
         for row in report.views:
@@ -147,6 +205,10 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
               "pose_alignment": alignment, **summary, "views": report.views}
     if aligned is not None:
         result["aligned_test_poses"] = aligned.refined_poses(frames)
+    split = offpath_split(data_dir) if offpath else None
+    if split is not None:
+        result["offpath"] = _offpath(bundle, split, response, backend, align_steps, report)
+        plot_offpath(result["offpath"], out_dir / "offpath.png")
     write_json(out_dir / "eval.json", result)
     (out_dir / "eval.md").write_text(_table(result, reader.rig.names))
     return result
@@ -164,4 +226,21 @@ def _table(result: dict[str, Any], cameras: list[str]) -> str:
     for name, s in [("all test views", o)] + [(c, result["per_camera"][c]) for c in cameras]:
         lines.append(f"| {name} | {_cell(s['psnr'], 2)} | {_cell(s['ssim'], 3)} | {_cell(s['slot_psnr'], 2)} | "
                      f"{_cell(s['slot_ssim'], 3)} |")
-    return "\n".join(lines) + f"\n\nLPIPS: {lpips}\n\nTest poses: {result['pose_alignment']}\n"
+    text = "\n".join(lines) + f"\n\nLPIPS: {lpips}\n\nTest poses: {result['pose_alignment']}\n"
+    return text + (_offpath_table(result["offpath"]) if "offpath" in result else "")
+
+
+def _offpath_table(off: dict[str, Any]) -> str:
+    """Markdown: scores on the recorded path and at each off-path offset (docs/offpath.md), plot below."""
+    ref = off["on_path"]
+    lines = ["", "### Off the recorded path", "",
+             "| poses | frames | views | PSNR | SSIM | slot PSNR | slot SSIM | PSNR - on path |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name, s in [("on path (recorded test frames)", ref)] + [(g["group"], g) for g in off["groups"]]:
+        drop = None if s["psnr"] is None or ref["psnr"] is None else s["psnr"] - ref["psnr"]
+        lines.append(f"| {name} | {s['frames']} | {s['views']} | {_cell(s['psnr'], 2)} | "
+                     f"{_cell(s['ssim'], 3)} | {_cell(s['slot_psnr'], 2)} | {_cell(s['slot_ssim'], 3)} | "
+                     f"{_cell(drop, 2)} |")
+    skipped = ", ".join(f"{k} {v}" for k, v in sorted(off["skipped"].items())) or "none"
+    return "\n".join(lines) + (f"\n\nSkipped poses: {skipped}. Off-path poses: {off['pose_alignment']}. "
+                               "Plot: offpath.png.\n")

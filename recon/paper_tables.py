@@ -5,6 +5,8 @@
 * One detection table per detector: precision/recall of marking points and slots on the ground-truth BEVs
   ("GT-" row) and on each of those reconstructions' rendered BEVs.
 * Ablation: every reconstruction, rendering quality plus each detector's slot precision/recall on its BEVs.
+* Off the recorded path (datasets with an off-path split, ``parksim offpath``): per scene and detector, slot
+  precision/recall on ground-truth and rendered BEVs at the same off-path poses, per offset group.
 Rows are matched across scenes by label; a cell a scene lacks reads "n/a". Each detection table names the
 scoring protocol (``recon.detectors.protocols``; results from before protocols were recorded used ParkSim's).
 """
@@ -108,8 +110,39 @@ def _ablation(results: list[dict[str, Any]], detectors: list[str]) -> list[str]:
             *_table(header, rows), "", _protocol(results)]
 
 
+def _offpath(result: dict[str, Any], detector: str) -> list[str]:
+    """One scene's detection off the recorded path: per pose group, the detector's slot precision/recall on the
+    ground-truth BEVs and, for each main reconstruction, PSNR and slot precision/recall on its rendered BEVs at the
+    same poses; the first row is the recorded test frames."""
+    title = DETECTOR_TITLES.get(detector, detector)
+    off = result["offpath"]
+    runs = [run for run in result["runs"] if _main(run)]
+    header = ["Poses", "frames", "labelled slots", f"GT-{title} slot P", f"GT-{title} slot R"]
+    header += [f"{run['label']} {c}" for run in runs for c in ("PSNR", "slot P", "slot R")]
+
+    def cells(gt: dict[str, Any] | None, frames: int, per_run: list[tuple[float | None, dict[str, Any] | None]]
+              ) -> list[str]:
+        labelled = str(gt["slots"]["labelled"]) if gt is not None else "n/a"
+        return [str(frames), labelled, *_pr(gt, "slots"),
+                *(c for psnr, scores in per_run for c in [_f(psnr, 2), *_pr(scores, "slots")])]
+
+    rows = [["on path (recorded test frames)", *cells(result["gt"].get(detector), len(result["test_frames"]),
+                                                      [(run["psnr"], run["detection"].get(detector)) for run in runs])]]
+    for g in off["groups"]:
+        name = g["group"]
+        per_run = [(run["offpath"]["quality"][name]["psnr"], run["offpath"]["detection"].get(detector, {}).get(name))
+                   for run in runs]
+        rows.append([name, *cells(off["gt"].get(detector, {}).get(name), g["frames"], per_run)])
+    skipped = ", ".join(f"{k} {v}" for k, v in sorted(off["skipped"].items())) or "none"
+    return [f"### {title} off the recorded path, {result['scene']}: ground-truth vs rendered BEVs at the same poses",
+            "", *_table(header, rows), "",
+            f"Lateral and yaw offsets count both sides; skipped poses: {skipped} (docs/offpath.md).",
+            _protocol([result])]
+
+
 def tables_markdown(results: list[dict[str, Any]]) -> str:
     """All tables for ``results`` (one ``recon.paper_eval.evaluate_runs`` result per scene), as Markdown."""
     detectors = list(dict.fromkeys(d for r in results for d in r["gt"]))
     parts = [_synthesis(results)] + [_detection(results, d) for d in detectors] + [_ablation(results, detectors)]
+    parts += [_offpath(r, d) for r in results if "offpath" in r for d in detectors]
     return "\n\n".join("\n".join(p) for p in parts) + "\n"

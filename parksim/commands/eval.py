@@ -37,7 +37,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "marking-point and slot precision/recall on the ground-truth BEVs (IPM of the dataset's "
                     "images: the GT- rows) and on each scene's rendered BEVs, the ablation table, and "
                     "panel_<detector>.png (ground-truth vs rendered BEVs; labels green, detections red). Files "
-                    "already in OUTPUT stay; the new ones appear only once all are written.")
+                    "already in OUTPUT stay; the new ones appear only once all are written. When DATA has an "
+                    "off-path split (DATA/offpath/, `parksim offpath`), its views are scored too, grouped by "
+                    "lateral and yaw offset and along parking manoeuvres: a table in eval.md and offpath.png, or "
+                    "with --detector per-group detection in tables.md (docs/offpath.md).")
     p.add_argument("scenes", nargs="+", type=_run_arg, metavar="SCENE",
                    help="scene bundle folder (parksim reconstruct output), or LABEL=FOLDER to name its table row")
     p.add_argument("data", type=Path, help="dataset directory with the test frames and slot labels")
@@ -49,6 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--protocol", choices=["parksim", "dmpr-ps"], default="parksim",
                    help="detection scoring rules: ParkSim's (metric, slot-angle check) or DMPR-PS' published ones "
                         "(shape check, label-first matching, 11-point AP, 5 %% border); docs/detection_protocol.md")
+    p.add_argument("--no-offpath", action="store_true",
+                   help="skip the off-path split (DATA/offpath/) even when the dataset has one")
     p.add_argument("--panel-frames", type=integer(0), default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
@@ -72,7 +77,7 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
     detectors = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in args.detector}
     atomic_files(out, lambda tmp: evaluate_runs(args.scenes, args.data, detectors, tmp, args.backend,
                                                 args.panel_frames, DecodeOptions(threshold=args.threshold),
-                                                get_protocol(args.protocol)))
+                                                get_protocol(args.protocol), offpath=not args.no_offpath))
     print((out / "tables.md").read_text(), end="")
     print(f"report: {out}/tables.json, panels: " + (", ".join(f"{out}/panel_{k}.png" for k in detectors) or "none"))
     return 0
@@ -100,7 +105,10 @@ def run(args: argparse.Namespace) -> int:
 
         lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights)
     scene = args.scenes[0][0]
-    atomic_files(out, lambda tmp: evaluate_bundle(scene, args.data, tmp, args.backend, lpips))
+    result: dict = {}
+    atomic_files(out, lambda tmp: result.update(evaluate_bundle(scene, args.data, tmp, args.backend, lpips,
+                                                                offpath=not args.no_offpath)))
     print((out / "eval.md").read_text(), end="")
-    print(f"report: {out}/eval.json, side-by-sides: {out}/renders/")
+    plot = f", off-path plot: {out}/offpath.png" if "offpath" in result else ""
+    print(f"report: {out}/eval.json, side-by-sides: {out}/renders/{plot}")
     return 0

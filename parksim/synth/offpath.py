@@ -30,7 +30,7 @@ from .presets import ScenePreset
 from .shading import SensorOptions
 from .trajectory import TrajectoryParams
 
-__all__ = ["OffpathSplit", "offpath_poses", "plan_offpath", "write_offpath", "read_descriptors", "group_frames",
+__all__ = ["OffpathSplit", "offpath_poses", "plan_offpath", "write_offpath", "read_offpath", "group_frames",
            "group_label", "LATERAL_M", "YAW_DEG", "MANOEUVRE_STEPS", "FRAME_BASE", "CLEARANCE", "OFFPATH_DIR",
            "OFFPATH_FILE"]
 
@@ -235,17 +235,20 @@ def group_frames(descriptors: Sequence[Mapping[str, Any]]) -> dict[str, dict[str
     return {group_label(g["kind"], g["offset"]): g for _, g in sorted(groups.items())}
 
 
-def read_descriptors(split_dir: str | Path) -> list[dict[str, Any]]:
-    """The frame descriptors of a written split (``offpath.json``)."""
+def read_offpath(split_dir: str | Path) -> dict[str, Any]:
+    """A written split's ``offpath.json``: ``frames`` (the descriptors), ``skipped`` and the offsets used."""
     import json
 
     path = Path(split_dir) / OFFPATH_FILE
     if not path.is_file():
         raise DatasetError(path, "file not found (write the split with `parksim offpath DATA`)")
     try:
-        return list(json.loads(path.read_text())["frames"])
+        info = json.loads(path.read_text())
+        if not isinstance(info["frames"], list) or not isinstance(info["skipped"], dict):
+            raise TypeError("frames must be a list, skipped a mapping")
     except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise DatasetError(path, f"not an off-path descriptor file: {e}") from None
+        raise DatasetError(path, f"not an off-path descriptor file: {e!r}") from None
+    return dict(info)
 
 
 def _preset(reader: DatasetReader) -> ScenePreset:
