@@ -1,16 +1,17 @@
-"""Scene compaction on a trained bundle: Gaussian count, four-camera serving latency and test PSNR per budget.
+"""Scene compaction's Pareto front on a trained bundle: four-camera serving render time against test PSNR.
 
-One measurement (``parksim.compact.measure_bundle``) serves every budget. Each variant is served as
-``parksim serve`` does it, by ``LocalSim`` (with the cell's subset when the variant has a visibility grid):
-latency is a four-camera render (no BEV, scale 1) at the dataset's test poses, timed alternately with the
-uncompacted bundle in the same process (median over repeats after a warm-up); PSNR is ``recon.evaluate``'s
-(each test view through the bundle's camera response, over the camera's scene mask) against ground truth.
+For each budget of ``BUDGETS`` (fixed before any run) three compact scenes are made from one measurement
+(``parksim.compact.measure_bundle``): the old ranking (largest blending weight), the new one (training-view
+summed weight per Gaussian-pixel pair) and the new one fine-tuned for ``--finetune`` steps
+(``recon.finetune``). No visibility grid (the global budget alone), SH tolerance ``--sh-tolerance``.
+Each is served as ``parksim serve`` does it, by ``LocalSim``: latency is a four-camera render (no BEV, scale 1)
+at the dataset's test poses, all variants and the uncompacted bundle timed alternately in one process
+(median over repeats after a warm-up; wall and process CPU). PSNR is ``recon.evaluate``'s (each view through
+the bundle's camera response, over the camera's scene mask) on the test frames and, when ``DATA/offpath``
+exists (``parksim offpath DATA``), on every off-path frame.
 
-    .venv/bin/python benchmarks/bench_compact.py --bundle scenes/scene1_320 --dataset data/scene1_320 \
-        --out benchmarks/RESULTS_compact.md
-
-A variant is ``BUDGET[:CELL_BUDGET][@SH_TOLERANCE]``: the ``--budget`` kept in the scene, with a visibility
-grid serving ``--cell-budget`` per cell when given (none otherwise), SH tolerance ``--sh-tolerance`` unless given.
+    .venv/bin/python benchmarks/bench_compact.py --bundle scenes/s1_320 --dataset data/scene1_320 \
+        --out benchmarks/RESULTS_compact.md --figure benchmarks/figures/compact_pareto.png
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import argparse
 import dataclasses
 import datetime
 import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -29,37 +29,43 @@ import torch
 
 from parksim import bundle as bundle_io
 from parksim.client import LocalSim
-from parksim.compact import CompactOptions, measure_bundle, reduce_bundle
+from parksim.compact import CompactOptions, Measurement, measure_bundle, reduce_bundle
 from parksim.data import DatasetReader
 from recon.evaluate import evaluate_views
+from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
 from recon.response import CameraResponse
+
+BUDGETS = (0.5, 0.35, 0.25, 0.15)
+"""Fractions of the scene kept, decided before the first run."""
+SERIES = (("weight", False), ("benefit-cost", False), ("benefit-cost", True))
+"""(ranking, fine-tuned) per budget: the old ranking, the new one, the new one fine-tuned."""
 
 
 @dataclasses.dataclass
 class Variant:
-    """A served bundle and what it was made with."""
+    """A served bundle, what it was made with, its scores and timings."""
 
     name: str
     sim: LocalSim
-    options: CompactOptions | None
+    ranking: str | None = None
+    budget: float = 1.0
+    tuned: bool = False
     psnr: float = 0.0
-    latency_ms: list[float] = dataclasses.field(default_factory=list)
+    offpath_psnr: float | None = None
+    make_s: float = 0.0
+    wall_ms: list[float] = dataclasses.field(default_factory=list)
+    cpu_ms: list[float] = dataclasses.field(default_factory=list)
 
 
-def served_psnr(sim: LocalSim, reader: DatasetReader) -> float:
-    """Mean test-view PSNR with the subset ``sim`` serves at each test pose."""
+def mean_psnr(sim: LocalSim, reader: DatasetReader, frames: list[int]) -> float:
+    """Mean PSNR of ``frames`` x every camera, rendered with the bundle's scene and camera response."""
     response = CameraResponse(reader.rig, 0.0)
     response.load_dict(sim.bundle.meta.get("camera_response", {}))
-    rows = []
-    for frame in reader.split["test"]:
-        pose = reader.pose(frame)
-        scene = sim.scene_at(_xy_yaw(pose))
-        views = [(frame, c) for c in reader.rig.names]
-        rows += evaluate_views(scene, reader, views, response, slots=False).views
-    return statistics.fmean(r["psnr"] for r in rows)
+    views = [(f, c) for f in frames for c in reader.rig.names]
+    return evaluate_views(sim.bundle.scene, reader, views, response, slots=False).mean("psnr") or 0.0
 
 
-def _xy_yaw(pose: torch.Tensor) -> list[float]:
+def xy_yaw(pose: torch.Tensor) -> list[float]:
     """A dataset pose as the planner's (x, y, yaw); the synthetic datasets' ego poses are planar."""
     T = pose.double()
     if abs(float(T[2, 3])) > 1e-6 or 1.0 - float(T[2, 2]) > 1e-6:
@@ -68,103 +74,163 @@ def _xy_yaw(pose: torch.Tensor) -> list[float]:
 
 
 def time_alternating(variants: list[Variant], poses: list[list[float]], repeats: int) -> None:
-    """Per repeat, each variant renders every pose (four cameras); stores ms per render. One warm-up pass."""
+    """Per repeat, each variant renders every pose (four cameras); stores wall and CPU ms per render. One warm-up."""
     for r in range(repeats + 1):
         for v in variants:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             for pose in poses:
                 v.sim.render(pose)
             if r:
-                v.latency_ms.append(1000 * (time.perf_counter() - start) / len(poses))
+                v.wall_ms.append(1000 * (time.perf_counter() - start) / len(poses))
+                v.cpu_ms.append(1000 * (time.process_time() - cpu) / len(poses))
 
 
-def table(variants: list[Variant], full: Variant) -> list[str]:
-    """Markdown rows: count, mean cell subset, SH degree, latency, speed-up and PSNR loss vs the full bundle."""
-    base_ms, lines = statistics.median(full.latency_ms), [
-        "| variant | Gaussians | served per cell (mean) | SH degree (Gaussians per degree) | four-camera render ms "
-        "(median) | speed-up | test PSNR dB | PSNR loss dB |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+def make_variants(full: bundle_io.Bundle, measured: Measurement, base: CompactOptions, reader: DatasetReader,
+                  bundle_dir: Path, steps: int) -> list[Variant]:
+    """One compact scene per budget and series, fine-tuning where the series says so (timed)."""
+    config, out = bundle_config(bundle_dir, full.meta), []
+    for budget in BUDGETS:
+        for ranking, tuned in SERIES:
+            opts = dataclasses.replace(base, budget=budget, ranking=ranking)
+            start = time.perf_counter()
+            tune = (lambda b: finetune(b, reader, steps, config, progress=True)) if tuned else None
+            compact = reduce_bundle(full, measured, opts, tune)
+            name = f"{ranking}{' + fine-tune' if tuned else ''}, budget {budget:g}"
+            out.append(Variant(name, LocalSim(compact, name), ranking, budget, tuned,
+                               make_s=time.perf_counter() - start))
+            print(f"{name}: {len(compact.scene)} Gaussians in {out[-1].make_s:.0f} s", flush=True)
+    return out
+
+
+def table(variants: list[Variant], full: Variant, offpath: bool) -> list[str]:
+    """Markdown rows: count, latency (wall, CPU), speed-up and PSNR (loss) against the full bundle."""
+    base_ms = statistics.median(full.wall_ms)
+    head = ("| variant | Gaussians | render ms wall (median) | render ms CPU (median) | speed-up | test PSNR dB | "
+            "loss dB |" + (" off-path PSNR dB | off-path loss dB |" if offpath else ""))
+    lines = [head, "|" + " --- |" * head.count(" |")]
     for v in variants:
-        b, ms = v.sim.bundle, statistics.median(v.latency_ms)
-        report = b.meta.get("compaction", {})
-        cell = f"{report['cell_gaussians_mean']:.0f}" if b.visibility is not None else "all"
-        degrees = "/".join(map(str, report.get("sh_degree_counts", [])))
-        lines.append(f"| {v.name} | {len(b.scene)} | {cell} | {b.scene.sh_degree} ({degrees or 'as trained'}) | "
-                     f"{ms:.1f} | {base_ms / ms:.2f}x | "
-                     f"{v.psnr:.2f} | {full.psnr - v.psnr:.2f} |")
+        ms = statistics.median(v.wall_ms)
+        row = (f"| {v.name} | {len(v.sim.bundle.scene)} | {ms:.1f} | {statistics.median(v.cpu_ms):.1f} | "
+               f"{base_ms / ms:.2f}x | {v.psnr:.2f} | {full.psnr - v.psnr:.2f} |")
+        if offpath:
+            assert v.offpath_psnr is not None and full.offpath_psnr is not None
+            row += f" {v.offpath_psnr:.2f} | {full.offpath_psnr - v.offpath_psnr:.2f} |"
+        lines.append(row)
     return lines
 
 
-def parse_variant(spec: str, base: CompactOptions) -> tuple[str, CompactOptions]:
-    """``BUDGET[:CELL_BUDGET][@SH_TOLERANCE]`` -> (row name, options)."""
-    head, _, sh = spec.partition("@")
-    budget, _, cell = head.partition(":")
-    opts = dataclasses.replace(base, budget=float(budget), cell_budget=float(cell or 1.0), visibility=bool(cell),
-                               sh_tolerance=float(sh) if sh else base.sh_tolerance)
-    name = f"budget {opts.budget:g}" + (f", cell budget {opts.cell_budget:g}" if cell else ", no visibility")
-    return name + (f", SH tolerance {opts.sh_tolerance:g}" if sh else ""), opts
+def plot(variants: list[Variant], full: Variant, path: Path) -> None:
+    """Render ms against test PSNR, one line per series, the full scene as a star (off-path dashed when measured)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    base = statistics.median(full.wall_ms)
+    for (ranking, tuned), colour in zip(SERIES, ("tab:grey", "tab:blue", "tab:green")):
+        rows = [v for v in variants if v.ranking == ranking and v.tuned == tuned]
+        ms = [statistics.median(v.wall_ms) for v in rows]
+        label = f"{ranking}{' + fine-tune' if tuned else ''}"
+        ax.plot(ms, [v.psnr for v in rows], "o-", color=colour, label=f"{label}, test")
+        if full.offpath_psnr is not None:
+            ax.plot(ms, [v.offpath_psnr or 0.0 for v in rows], "s--", color=colour, alpha=0.6, label=f"{label}, off-path")
+        for v, x in zip(rows, ms):
+            ax.annotate(f"{v.budget:g}", (x, v.psnr), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    ax.plot([base], [full.psnr], "k*", markersize=12, label="full scene, test")
+    if full.offpath_psnr is not None:
+        ax.plot([base], [full.offpath_psnr], "k*", markersize=12, alpha=0.5, label="full scene, off-path")
+    ax.axvline(base / 2.5, color="tab:red", lw=0.8, ls=":", label="target: 2.5x faster")
+    ax.axhline(full.psnr - 0.3, color="tab:red", lw=0.8, ls="-.", label="target: test PSNR loss 0.3 dB")
+    ax.set_xlabel("four-camera serving render, ms (median, wall)")
+    ax.set_ylabel("PSNR, dB")
+    ax.set_title("parksim compact: render time against PSNR (budget fraction at each point)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+
+
+def cpu_model() -> str:
+    """The CPU's model name as lscpu prints it (from /proc/cpuinfo)."""
+    for line in Path("/proc/cpuinfo").read_text().splitlines():
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return "unknown CPU"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bundle", type=Path, required=True)
     parser.add_argument("--dataset", type=Path, required=True)
-    parser.add_argument("--variants", default="1@0,1,0.5,0.35,0.25,1:1,1:0.5,1:0.35,1:0.25,0.5:0.35",
-                        help="comma-separated BUDGET[:CELL_BUDGET][@SH_TOLERANCE]")
+    parser.add_argument("--finetune", type=int, default=FINETUNE_ITERATIONS, help="fine-tuning steps")
     parser.add_argument("--cell", type=float, default=4.0)
-    parser.add_argument("--per-cell", type=int, default=16)
+    parser.add_argument("--per-cell", type=int, default=8)
     parser.add_argument("--sh-tolerance", type=float, default=0.01)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/RESULTS_compact.md"))
-    parser.add_argument("--weights", type=Path,
+    parser.add_argument("--figure", type=Path, default=Path("benchmarks/figures/compact_pareto.png"))
+    parser.add_argument("--measurement", type=Path,
                         help="measurement cache (torch file): read when it exists, else written after measuring")
     args = parser.parse_args()
 
     started = datetime.datetime.now(datetime.timezone.utc)
     load_start = os.getloadavg()
     full_bundle, reader = bundle_io.load(args.bundle), DatasetReader(args.dataset)
-    base = CompactOptions(cell=args.cell, per_cell=args.per_cell, sh_tolerance=args.sh_tolerance)
-    if args.weights is not None and args.weights.is_file():
-        grid, weights, measure_s, measure_cpu = torch.load(args.weights, weights_only=False)
+    offpath = DatasetReader(args.dataset / "offpath") if (args.dataset / "offpath").is_dir() else None
+    base = CompactOptions(cell=args.cell, per_cell=args.per_cell, sh_tolerance=args.sh_tolerance, visibility=False,
+                          ranking="benefit-cost")
+    if args.measurement is not None and args.measurement.is_file():
+        measured, measure_s, measure_cpu = torch.load(args.measurement, weights_only=False)
     else:
         t0, cpu0 = time.perf_counter(), time.process_time()
-        grid, weights = measure_bundle(full_bundle, base, progress=True)
+        measured = measure_bundle(full_bundle, base, progress=True, reader=reader)
         measure_s, measure_cpu = time.perf_counter() - t0, time.process_time() - cpu0
-        if args.weights is not None:
-            torch.save((grid, weights, measure_s, measure_cpu), args.weights)
+        if args.measurement is not None:
+            torch.save((measured, measure_s, measure_cpu), args.measurement)
 
-    variants = [Variant("full (reference)", LocalSim(full_bundle, "full"), None)]
-    for spec in args.variants.split(","):
-        name, opts = parse_variant(spec, base)
-        variants.append(Variant(name, LocalSim(reduce_bundle(full_bundle, grid, weights, opts), name), opts))
-    for v in variants:
-        v.psnr = served_psnr(v.sim, reader)
-        print(f"{v.name}: {len(v.sim.bundle.scene)} Gaussians, test PSNR {v.psnr:.2f} dB", flush=True)
-    poses = [_xy_yaw(reader.pose(f)) for f in reader.split["test"]]
-    time_alternating(variants, poses, args.repeats)
-    rows = table(variants, variants[0])
+    full = Variant("full (reference)", LocalSim(full_bundle, "full"))
+    variants = make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune)
+    for v in [full, *variants]:
+        v.psnr = mean_psnr(v.sim, reader, reader.split["test"])
+        if offpath is not None:
+            v.offpath_psnr = mean_psnr(v.sim, offpath, offpath.split["test"])
+        print(f"{v.name}: {len(v.sim.bundle.scene)} Gaussians, test PSNR {v.psnr:.2f} dB"
+              + (f", off-path {v.offpath_psnr:.2f} dB" if v.offpath_psnr is not None else ""), flush=True)
+    poses = [xy_yaw(reader.pose(f)) for f in reader.split["test"]]
+    time_alternating([full, *variants], poses, args.repeats)
+    rows = table([full, *variants], full, offpath is not None)
     print("\n".join(rows))
+    plot(variants, full, args.figure)
 
     load_end = os.getloadavg()
-    s = full_bundle.scene
+    s, cam = full_bundle.scene, reader.rig.cameras[reader.rig.names[0]].model
+    tuned = [v.make_s for v in variants if v.tuned]
     text = [
-        "# Scene compaction (`parksim compact`)", "",
+        "## Pareto front: old ranking, benefit-cost ranking, benefit-cost + fine-tuning", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
-        f"--variants {args.variants} --cell {args.cell:g} --per-cell {args.per_cell} "
+        f"--finetune {args.finetune} --cell {args.cell:g} --per-cell {args.per_cell} "
         f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats}"
-        + (f" --weights {args.weights}" if args.weights else "") + "`", "",
-        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
-        f"{numba.get_num_threads()}, torch {torch.__version__}; started {started:%Y-%m-%dT%H:%M}Z; load average "
-        f"{load_start[0]:.1f} at the start, {load_end[0]:.1f} at the end "
-        "(shared machine: other jobs were running).", "",
+        + (f" --measurement {args.measurement}" if args.measurement else "") + "`", "",
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, torch "
+        f"{torch.__version__}; started {started:%Y-%m-%d %H:%M} UTC; load average {load_start[0]:.1f} at the start, "
+        f"{load_end[0]:.1f} at the end (shared machine: other jobs were running).", "",
         f"Scene: {len(s)} Gaussians, SH degree {s.sh_degree}; {len(reader.split['test'])} test frames x "
-        f"{len(reader.rig.names)} cameras at {reader.rig.cameras[reader.rig.names[0]].model.width}x"
-        f"{reader.rig.cameras[reader.rig.names[0]].model.height}. Measurement: {len(grid.poses)} drivable poses in "
-        f"{len(set(grid.cells.tolist()))} cells of {args.cell:g} m ({args.per_cell} per cell, 1 m margin), "
-        f"{measure_s:.0f} s wall / {measure_cpu:.0f} s CPU, once for all budgets.", "",
-        "Latency: `LocalSim.render(pose)` (what `parksim serve` runs), four cameras, no BEV, at the test poses, "
-        f"median of {args.repeats} repeats after a warm-up, every variant timed alternately in one process. "
-        "\"served per cell\" is the mean size of a visibility cell's subset (what a render at a pose in that cell "
-        "projects and rasterizes).", "", *rows, ""]
+        f"{len(reader.rig.names)} cameras at {cam.width}x{cam.height}"
+        + (f"; off-path: {len(offpath.split['test'])} frames x {len(offpath.rig.names)} cameras "
+           f"({args.dataset / 'offpath'})" if offpath is not None else
+           "; no off-path split (DATA/offpath missing): off-path PSNR not measured") + ". "
+        f"Measurement: {len(measured.grid.poses)} drivable poses in {len(set(measured.grid.cells.tolist()))} cells "
+        f"of {args.cell:g} m ({args.per_cell} per cell), plus the benefit over "
+        f"{len(reader.split['train']) * len(reader.rig.names)} training views: {measure_s:.0f} s wall / "
+        f"{measure_cpu:.0f} s CPU, once for all budgets. Fine-tuning: {args.finetune} steps per budget "
+        f"(median {statistics.median(tuned):.0f} s wall).", "",
+        f"Budgets (fixed in the script): {', '.join(f'{b:g}' for b in BUDGETS)} of the scene; no visibility grid; "
+        "latency is `LocalSim.render(pose)` (what `parksim serve` runs), four cameras, no BEV, at the test poses, "
+        f"median of {args.repeats} repeats after a warm-up, every variant timed alternately in one process; "
+        "wall and process-CPU ms per render.", "", *rows, "",
+        f"![Pareto front]({os.path.relpath(args.figure, args.out.parent)})", ""]
     args.out.write_text("\n".join(text) + "\n")
     print(f"wrote {args.out}")
 

@@ -18,15 +18,24 @@ from parksim.compact import (
     pose_weights,
     reduce_bundle,
     select,
+    summed_weights,
 )
+from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
 from parksim.render import render
 from parksim.render.rasterize.contribution import max_weights
 from parksim.render.rasterize.reference import max_weights_reference
 from parksim.render.sh import eval_sh
+from recon.config import load_config
+from recon.evaluate import evaluate_views
+from recon.finetune import finetune
+from recon.trainer import Trainer
 from sim_fixtures import make_bundle
+from tolerances import f32_ulp
 
-OPTIONS = CompactOptions(cell=8.0, per_cell=2, margin=1.0)
+OPTIONS = CompactOptions(cell=8.0, per_cell=2, margin=1.0, ranking="benefit-cost")
+COSTLY, CHEAP = -4, -3
+"""Rows of the garage fixture's two added, visible Gaussians: a wide faint one and a small opaque one."""
 
 
 def _random_2d(m: int, width: int, height: int, seed: int) -> tuple[torch.Tensor, ...]:
@@ -61,24 +70,32 @@ def test_max_weights_match_the_torch_oracle():
 
 
 @pytest.fixture(scope="module")
-def garage(tmp_path_factory):
-    """A small garage bundle with two extra Gaussians that can never show: a transparent one and one past far."""
+def garage(tmp_path_factory, tiny_data):
+    """A small garage bundle (the ``tiny`` preset's, like ``tiny_data``) measured with the benefit-cost ranking.
+
+    Four Gaussians are appended, in front of the first training frame: a wide faint one (COSTLY) and a small
+    opaque one (CHEAP), then two that can never show: a transparent one and one past far.
+    """
     path = make_bundle(tmp_path_factory.mktemp("garage") / "full", n=600, size=(64, 48))
     b = bundle_io.load(path)
     s = b.scene
-    extra = GaussianScene(torch.tensor([[10.0, 0.0, 1.0], [5000.0, 0.0, 1.0]]), s.quats[:2], s.log_scales[:2],
-                          torch.tensor([-12.0, 5.0]), s.sh[:2], s.sh_degree)
+    reader = DatasetReader(tiny_data)
+    ahead = reader.pose(reader.split["train"][0]).float() @ torch.tensor([[4.0, 2.0, 1.5, 1.0], [4.0, -1.0, 1.0, 1.0],
+                                                                          [10.0, 0.0, 1.0, 1.0], [5000.0, 0, 1, 1]]).T
+    extra = GaussianScene(ahead[:3].T.contiguous(), s.quats[:4], torch.log(torch.tensor([1.5, 0.05, 0.1, 0.1]))
+                          [:, None].expand(4, 3).contiguous(), torch.tensor([-3.5, 5.0, -12.0, 5.0]), s.sh[:4],
+                          s.sh_degree)
     scene = GaussianScene(*(torch.cat([getattr(s, k), getattr(extra, k)]) for k in
                             ("means", "quats", "log_scales", "opacity_logits", "sh")), s.sh_degree)
     refined = {"frames": [{"frame": 0, "timestamp": 0.0, "T_world_vehicle": torch.eye(4).tolist()}], "refined": [0]}
     b = bundle_io.Bundle(scene, b.rig, b.map, b.meta, poses=refined)
     bundle_io.save(path, b)
-    grid, weights = measure_bundle(b, OPTIONS)
-    return path, b, grid, weights
+    measured = measure_bundle(b, OPTIONS, reader=reader)
+    return path, b, measured.grid, measured.weights, measured
 
 
 def test_never_seen_gaussians_are_dropped_and_seen_ones_kept(garage):
-    _, b, grid, weights = garage
+    _, b, grid, weights, _ = garage
     best = weights.amax(dim=0)
     n = len(b.scene)
     assert best[n - 2] == 0 and best[n - 1] == 0
@@ -91,8 +108,8 @@ def test_never_seen_gaussians_are_dropped_and_seen_ones_kept(garage):
 
 
 def test_compact_render_matches_full_at_measured_poses(garage):
-    _, b, grid, weights = garage
-    compact = reduce_bundle(b, grid, weights, OPTIONS)
+    _, b, grid, weights, measured = garage
+    compact = reduce_bundle(b, measured, OPTIONS)
     assert len(compact.scene) < len(b.scene)
     for pose in grid.poses[::7]:
         full = render(b.scene, b.rig, pose.tolist())
@@ -102,7 +119,7 @@ def test_compact_render_matches_full_at_measured_poses(garage):
 
 
 def test_weights_are_those_of_the_render(garage):
-    _, b, grid, _ = garage
+    _, b, grid, _, _ = garage
     w = pose_weights(b.scene, b.rig, grid.poses[3].tolist())
     keep = (w > 0).nonzero().squeeze(1)
     full = render(b.scene, b.rig, grid.poses[3].tolist())
@@ -127,9 +144,9 @@ def test_lower_sh_stays_within_tolerance():
 
 
 def test_visibility_subset_render_equals_full_render(garage, tmp_path):
-    path, b, grid, weights = garage
+    path, b, grid, weights, measured = garage
     out = tmp_path / "compact"
-    bundle_io.save(out, reduce_bundle(b, grid, weights, OPTIONS))
+    bundle_io.save(out, reduce_bundle(b, measured, OPTIONS))
     full, compact = LocalSim(path), LocalSim(out)
     assert compact.bundle.visibility is not None and full.bundle.visibility is None
     subsets = 0
@@ -145,8 +162,8 @@ def test_visibility_subset_render_equals_full_render(garage, tmp_path):
 
 
 def test_cell_budget_keeps_the_most_visible_from_each_cell(garage):
-    _, b, grid, weights = garage
-    compact = reduce_bundle(b, grid, weights, dataclasses.replace(OPTIONS, cell_budget=0.3))
+    _, b, grid, weights, measured = garage
+    compact = reduce_bundle(b, measured, dataclasses.replace(OPTIONS, cell_budget=0.3))
     kept = weights[:, select(weights.amax(dim=0), 1.0)]
     for c in np.unique(grid.cells):
         members = torch.from_numpy(compact.visibility.members(c)).long()
@@ -156,8 +173,8 @@ def test_cell_budget_keeps_the_most_visible_from_each_cell(garage):
 
 
 def test_visibility_round_trip_and_old_bundles(garage, tmp_path):
-    path, b, grid, weights = garage
-    compact = reduce_bundle(b, grid, weights, OPTIONS)
+    path, b, grid, weights, measured = garage
+    compact = reduce_bundle(b, measured, OPTIONS)
     bundle_io.save(tmp_path / "c", compact)
     back = bundle_io.load(tmp_path / "c")
     assert back.meta["visibility"] == "visibility.npz" and back.meta["compaction"]["gaussians"] == len(back.scene)
@@ -172,7 +189,7 @@ def test_cli_writes_a_compact_bundle(garage, tmp_path, capsys):
     path = garage[0]
     out = tmp_path / "small"
     argv = ["compact", str(path), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5",
-            "--cell-budget", "0.5", "--quiet"]
+            "--cell-budget", "0.5", "--ranking", "weight", "--finetune", "0", "--quiet"]
     assert main(argv) == 0
     assert "visibility cells" in capsys.readouterr().out
     small = bundle_io.load(out)
@@ -209,3 +226,72 @@ def test_options_are_checked_before_measuring():
         CompactOptions(cell=0.0)
     with pytest.raises(ValueError, match="cell budget"):
         CompactOptions(cell_budget=1.5)
+
+
+def test_benefit_is_each_gaussians_share_of_the_rendered_alpha(garage, tiny_data):
+    """Summed over Gaussians, the benefit is the alpha of every training view summed over its pixels."""
+    b, reader = garage[1], DatasetReader(tiny_data)
+    benefit = summed_weights(b.scene, b.rig, reader)
+    alphas = [render(b.scene, b.rig, reader.view_pose(c, f), cameras=[c]).alpha[c].double()
+              for f in reader.split["train"] for c in b.rig.names]
+    total = sum(float(a.sum()) for a in alphas)
+    # each pixel's alpha and each Gaussian's gradient are float32 running sums: one rounding per pixel at the sum
+    assert abs(float(benefit.sum()) - total) <= sum(a.numel() * f32_ulp(float(a.sum())) for a in alphas)
+    assert (benefit >= 0).all() and benefit[-2:].eq(0).all()
+
+
+def test_benefit_cost_ranks_a_costly_faint_gaussian_below_a_small_opaque_one(garage):
+    _, b, _, weights, measured = garage
+    score, best, pairs, benefit = measured.score("benefit-cost"), weights.amax(dim=0), measured.pairs, measured.benefit
+    assert pairs[COSTLY] > 5 * pairs[CHEAP] and benefit[CHEAP] > 0 and benefit[COSTLY] > 0
+    assert score[CHEAP] > score[COSTLY] and torch.equal(score[best > 0], (benefit / pairs)[best > 0])
+    n, seen = len(b.scene), int((best > 0).sum())
+    for budget in (0.5, 100.0):
+        keep = select(best, budget, score=score)
+        assert len(keep) == (round(budget * n) if budget <= 1 else int(budget)) < seen
+        dropped = (best > 0) & ~torch.isin(torch.arange(n), keep)
+        assert score[keep].min() >= score[dropped].max()
+    # what the ranking is for: at the same count, the kept scene costs fewer pairs than the weight ranking's
+    by_weight = select(best, 0.5, score=measured.score("weight"))
+    assert not torch.equal(by_weight, select(best, 0.5, score=score))
+    assert pairs[select(best, 0.5, score=score)].sum() < pairs[by_weight].sum()
+
+
+def test_finetune_runs_n_steps_without_densifying_and_raises_psnr(garage, tiny_data, monkeypatch):
+    _, b, _, weights, measured = garage
+    reader = DatasetReader(tiny_data)
+    keep = select(weights.amax(dim=0), 0.5, score=measured.score("benefit-cost"))
+    pruned = bundle_io.Bundle(b.scene.subset(keep), b.rig, b.map, b.meta)
+    steps, real = [], Trainer.iteration
+    monkeypatch.setattr(Trainer, "iteration", lambda self: steps.append(len(self.params)) or real(self))
+    # the tiny preset densifies from step 5 (MCMC adds Gaussians): fine-tuning must switch that off
+    tuned = finetune(pruned, reader, 12, load_config("tiny"))
+    assert steps == [len(keep)] * 12 and len(tuned.scene) == len(keep) and tuned.meta["finetune"]["iterations"] == 12
+    views = [(f, c) for f in reader.split["test"] for c in reader.rig.names]
+    before, after = (evaluate_views(x.scene, reader, views, None, slots=False).mean("psnr") for x in (pruned, tuned))
+    assert after > before
+    with pytest.raises(ValueError, match="pose-refined"):
+        finetune(b, reader, 1)
+
+
+@pytest.mark.parametrize("value", ["-1", "1.5", "x"])
+def test_cli_rejects_a_bad_finetune_count(garage, tmp_path, capsys, value):
+    assert main(["compact", str(garage[0]), "-o", str(tmp_path / "x"), f"--finetune={value}"]) == 2
+    err = capsys.readouterr().err
+    assert "--finetune" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+
+
+def test_cli_fine_tunes_with_the_dataset_and_needs_one(garage, tiny_data, tmp_path, capsys):
+    src = tmp_path / "unrefined"
+    shutil.copytree(garage[0], src)
+    (src / "poses.json").unlink()
+    out = tmp_path / "tuned"
+    argv = ["compact", str(src), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5",
+            "--no-visibility", "--finetune", "3", "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "records no dataset" in err and len(err.strip().splitlines()) == 1 and not out.exists()
+    assert main([*argv, "--dataset", str(tiny_data)]) == 0
+    assert "fine-tuned 3 steps" in capsys.readouterr().out
+    meta = bundle_io.load(out).meta
+    assert meta["finetune"]["iterations"] == 3 and meta["compaction"]["ranking"] == "benefit-cost"

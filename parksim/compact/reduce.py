@@ -1,6 +1,6 @@
-"""The three reductions of ``parksim compact``: keep the most visible Gaussians, drop unneeded SH bands, cell lists.
+"""The three reductions of ``parksim compact``: keep the best-ranked Gaussians, drop unneeded SH bands, cell lists.
 
-Each is a pure function of the measured weights (``measure``) and the scene.
+Each is a pure function of the measurements (``measure``, ``benefit``) and the scene.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ from ..gaussians import GaussianScene
 from ..visibility import VisibilityGrid
 from .poses import GridPoses
 
-__all__ = ["check_budget", "budget_count", "select", "sh_change_bound", "lower_sh", "visibility_grid"]
+__all__ = ["RANKINGS", "check_budget", "budget_count", "ranking_score", "select", "sh_change_bound", "lower_sh",
+           "visibility_grid"]
 
 
 def check_budget(budget: float, name: str = "budget") -> None:
@@ -32,14 +33,34 @@ def budget_count(budget: float, n: int) -> int:
     return round(budget * n) if budget <= 1 else min(int(budget), n)
 
 
-def select(weights: Tensor, budget: float, min_weight: float = 0.0) -> Tensor:
+RANKINGS = ("weight", "benefit-cost")
+"""How ``--budget`` ranks Gaussians: by largest blending weight, or by summed training-view weight per pair."""
+
+
+def ranking_score(ranking: str, weights: Tensor, benefit: Tensor | None = None, pairs: Tensor | None = None) -> Tensor:
+    """[N] the key ``select`` keeps the largest of: ``weights`` as they are, or ``benefit / pairs``.
+
+    benefit-cost is a knapsack's greedy ratio: what a Gaussian adds to the images per Gaussian-pixel pair it costs
+    at serving poses; a Gaussian with no pairs there (never drawn) scores 0.
+    """
+    if ranking == "weight":
+        return weights
+    if ranking != "benefit-cost":
+        raise ValueError(f"ranking must be one of {', '.join(RANKINGS)}, got {ranking!r}")
+    if benefit is None or pairs is None:
+        raise ValueError("the benefit-cost ranking needs the measured benefit and pairs")
+    return torch.where(pairs > 0, benefit / pairs.clamp(min=1.0), 0.0)
+
+
+def select(weights: Tensor, budget: float, min_weight: float = 0.0, score: Tensor | None = None) -> Tensor:
     """Indices (ascending) of the Gaussians to keep: weight above ``min_weight``, at most the budget's count.
 
-    Among those above ``min_weight``, the largest weights win; ties go to the lower index.
+    Among those above ``min_weight``, the largest ``score`` (default: the weights) win; ties go to the lower index.
     """
     candidates = (weights > min_weight).nonzero().squeeze(1)
     k = min(budget_count(budget, len(weights)), len(candidates))
-    order = torch.argsort(weights[candidates], descending=True, stable=True)[:k]
+    key = (weights if score is None else score)[candidates]
+    order = torch.argsort(key, descending=True, stable=True)[:k]
     return candidates[order].sort().values
 
 
