@@ -1,42 +1,82 @@
-"""Time ``parksim synth scene1`` (default: 100 frames x 4 cameras at 640x480) and record it.
+"""Time ``parksim synth`` serially and with the process pool, in the same run, and record both.
 
-Usage: python benchmarks/bench_synth.py [--preset scene1] [-o data/scene1]
-Writes benchmarks/RESULTS_synth.md with the command, machine, date and wall time.
+Usage: python benchmarks/bench_synth.py [--preset scene1] [--frames 12] [--workers 1,2] [--repeats 1]
+Each configuration renders the same frames into a fresh temporary dataset (the generator's own ``generate``, as
+``parksim synth`` calls it); wall time, process CPU time (this process + its pool workers) and the 1-minute load
+average before and after are appended as a section to benchmarks/RESULTS_synth.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import os
 import platform
+import resource
+import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
+
+
+def _cpu_seconds() -> float:
+    """User + system CPU of this process and of its reaped children (the pool's workers)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="scene1")
-    ap.add_argument("-o", "--output", default="data/scene1")
+    ap.add_argument("--frames", type=int, default=12, help="frames per run (640x480 x 4 cameras each)")
+    ap.add_argument("--workers", default="1,2", help="comma-separated worker counts to compare (1 = serial)")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per worker count, interleaved; medians reported")
     ap.add_argument("--results", default=str(Path(__file__).with_name("RESULTS_synth.md")))
     args = ap.parse_args()
-    start = time.perf_counter()
-    from parksim.commands import synth  # the CLI's own subcommand, run in-process (imports are timed)
+    from parksim.synth import generate, get_preset
 
-    parser = argparse.ArgumentParser(prog="parksim")
-    synth.add_parser(parser.add_subparsers())
-    synth.run(parser.parse_args(["synth", args.preset, "-o", args.output, "--overwrite", "--quiet"]))
-    wall = time.perf_counter() - start
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    text = (f"# `parksim synth` timing\n\n"
-            f"- command: `parksim synth {args.preset} -o {args.output}` (run by `python benchmarks/bench_synth.py`)\n"
-            f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"{platform.system()} {platform.release()}, Python {platform.python_version()}; "
-            f"1-min load average at the end: {load:.1f} (shared machine)\n"
-            f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}\n"
-            f"- wall time: **{wall:.1f} s** (target: under 300 s for 100 frames x 4 cameras at 640x480)\n")
-    Path(args.results).write_text(text)
+    preset = dataclasses.replace(get_preset(args.preset), frames=args.frames)
+    counts = [int(w) for w in args.workers.split(",")]
+    runs: dict[int, list[tuple[float, float, float, float]]] = {w: [] for w in counts}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.repeats):
+            for w in counts:
+                load0, cpu0, t0 = os.getloadavg()[0], _cpu_seconds(), time.perf_counter()
+                generate(preset, Path(tmp) / f"run{r}_w{w}", workers=w)
+                wall, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
+                runs[w].append((wall, cpu, load0, os.getloadavg()[0]))
+                print(f"workers {w}: wall {wall:.1f} s, CPU {cpu:.1f} s", flush=True)
+    serial = statistics.median(x[0] for x in runs[counts[0]])
+    rows = []
+    for w in counts:
+        wall = statistics.median(x[0] for x in runs[w])
+        cpu = statistics.median(x[1] for x in runs[w])
+        loads = ", ".join(f"{a:.1f}->{b:.1f}" for _, _, a, b in runs[w])
+        rows.append(f"| {w} | {wall:.1f} | {cpu:.1f} | {serial / wall:.2f}x | {loads} |")
+    text = (f"\n## Serial against the pool: {args.preset}, {args.frames} frames x 4 cameras at "
+            f"{preset.width}x{preset.height} ({datetime.datetime.now().isoformat(timespec='minutes')})\n\n"
+            f"- command: `python benchmarks/bench_synth.py --preset {args.preset} --frames {args.frames} "
+            f"--workers {args.workers} --repeats {args.repeats}` (medians over {args.repeats} interleaved run(s))\n"
+            f"- machine: {_cpu_model()}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
+            f"Python {platform.python_version()}\n"
+            f"- CPU = user + system time of the process and its pool workers; wall includes pool start-up (each "
+            f"worker imports and builds its renderer once)\n\n"
+            "| workers | wall (s) | CPU (s) | speed-up (wall, vs first row) | 1-min load before->after |\n"
+            "|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+    with open(args.results, "a") as f:
+        f.write(text)
     print(text)
     return 0
 
