@@ -1,7 +1,9 @@
-"""README figure: the four fisheye views and the GT BEV with its slot labels, one frame of scene1.
+"""README figure: the four fisheye views and the GT BEV with its slot labels, one frame of a synthetic dataset.
 
 Usage: python benchmarks/make_synth_figure.py [--data data/scene1] [--frame 40] [-o docs/synth_scene1.png]
-(generate the scene first: ``parksim synth scene1 -o data/scene1``).
+       python benchmarks/make_synth_figure.py --data data/worn --frame 55 -o docs/synth_worn.jpg
+(generate the scene first: ``parksim synth scene1 -o data/scene1``). A ``.jpg`` output is written at JPEG quality
+85, which keeps the noisy photographic views of worn/busy small.
 """
 
 from __future__ import annotations
@@ -48,9 +50,11 @@ def main() -> int:
     ax.set_title(f"GT IPM (BEV) with DMPR-PS labels: {len(marks)} marking points, {len(labels['slots'])} slots",
                  fontsize=10)
     ax.axis("off")
-    fig.suptitle(f"parksim synth scene1, frame {args.frame}: 190 deg fisheyes (ray cast) and their IPM", fontsize=12)
+    fig.suptitle(f"parksim synth {r.meta.get('preset', args.data)}, frame {args.frame}: 190 deg fisheyes (ray cast) "
+                 "and their IPM", fontsize=12)
     fig.tight_layout()
-    fig.savefig(args.output)
+    jpeg = str(args.output).lower().endswith((".jpg", ".jpeg"))
+    fig.savefig(args.output, pil_kwargs={"quality": 85} if jpeg else None)
     print(f"wrote {args.output}")
     return 0
 
