@@ -57,14 +57,14 @@ class EvalReport:
 
 
 _SCORES = ("psnr", "ssim", "slot_psnr", "slot_ssim")
+"""The per-view scores every summary averages."""
 
 
 def summarize(report: EvalReport, cameras: list[str], frames: list[int]) -> dict[str, Any]:
     """Overall, per-camera and per-frame means of every score."""
-    keys = _SCORES
-    return {"overall": {k: report.mean(k) for k in keys},
-            "per_camera": {c: {k: report.mean(k, camera=c) for k in keys} for c in cameras},
-            "per_frame": {str(f): {k: report.mean(k, frame=f) for k in keys} for f in frames}}
+    return {"overall": {k: report.mean(k) for k in _SCORES},
+            "per_camera": {c: {k: report.mean(k, camera=c) for k in _SCORES} for c in cameras},
+            "per_frame": {str(f): {k: report.mean(k, frame=f) for k in _SCORES} for f in frames}}
 
 
 def group_means(report: EvalReport, groups: Mapping[str, Sequence[int]]) -> dict[str, dict[str, Any]]:
