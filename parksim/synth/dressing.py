@@ -87,9 +87,7 @@ def _signs(g: Garage, rng: np.random.Generator) -> None:
         for face in (2, 3):
             g.decals.append(Decal(i, face, 0.0, 1.6, 0.62, 0.36, text, (0.05, 0.05, 0.05), (0.92, 0.92, 0.9)))
     for j, s in enumerate(g.slots):
-        start, end = g.marks[s.p1], g.marks[s.p2]
-        into = np.array([math.cos(start.direction), math.sin(start.direction)])
-        mid = np.array([(start.x + end.x) / 2, (start.y + end.y) / 2])
+        mid, into = g.slot_entrance(s)
         number = f"{101 + j}"
         if s.kind != "parallel":
             right = np.array([into[1], -into[0]])

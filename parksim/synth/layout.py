@@ -121,6 +121,11 @@ class Garage:
     decals: list[Decal] = field(default_factory=list)
     floor_text: list[FloorText] = field(default_factory=list)
 
+    def slot_entrance(self, s: Slot) -> tuple[np.ndarray, np.ndarray]:
+        """Midpoint of slot ``s``'s entrance and the unit direction into the slot (world xy)."""
+        a, b = self.marks[s.p1], self.marks[s.p2]
+        return np.array([(a.x + b.x) / 2, (a.y + b.y) / 2]), np.array([math.cos(a.direction), math.sin(a.direction)])
+
 
 @dataclass(frozen=True)
 class Decal:

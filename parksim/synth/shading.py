@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .layout import Garage, Slot
+from .layout import Garage
 from .raycast import CEILING, FLOOR, BoxSet, Hits
 from .signage import DecalSet, draw_floor_text
 
@@ -188,12 +188,6 @@ class Shader:
             keep *= 1.0 - 0.92 * np.clip((n - thr) / 0.04 + 0.5, 0.0, 1.0)
         maps[r, c] = np.rint(maps[r, c] * keep[:, None]).astype(np.uint8)
 
-    def _slot_frame(self, s: Slot) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Entrance midpoint, unit direction into the slot and unit direction along the entrance of slot ``s``."""
-        a, b = self.g.marks[s.p1], self.g.marks[s.p2]
-        into = np.array([math.cos(a.direction), math.sin(a.direction)])
-        return np.array([(a.x + b.x) / 2, (a.y + b.y) / 2]), into, np.array([-into[1], into[0]])
-
     def _dirt_map(self, rng: np.random.Generator) -> np.ndarray:
         """Floor darkening [H, W, 1] at 5 cm (1 = clean) over paint and concrete alike: tyre tracks into each slot
         (``tyre_marks``: share of slots and darkness), oil and water stains (``stains`` per slot and per 5 m of
@@ -209,7 +203,8 @@ class Shader:
                         float(1.0 - rng.uniform(0.15, 0.5)), -1)
 
         for s in self.g.slots:
-            mid, into, along = self._slot_frame(s)
+            mid, into = self.g.slot_entrance(s)
+            along = np.array([-into[1], into[0]])
             if rng.random() < p.tyre_marks:
                 for track in (-0.78, 0.78):
                     lean = float(rng.normal(0, 0.12))
