@@ -65,11 +65,12 @@ def gt_bevs(reader: DatasetReader, frames: list[int]) -> list[TestBEV]:
 
 @torch.no_grad()
 def rendered_bevs(scene: GaussianScene, reader: DatasetReader, frames: list[int], response: Response | None,
-                  backend: str = "auto") -> list[TestBEV]:
-    """IPM of the scene's views of each frame, through the learned camera response and clipped to [0, 1]."""
+                  backend: str = "auto", method: str = "ut") -> list[TestBEV]:
+    """IPM of the scene's views of each frame (projection ``method``), through the learned camera response and
+    clipped to [0, 1]."""
     _check(reader, frames)
     ipm = bev_ipm(reader.rig)
-    return [TestBEV(f, ipm({c: render_view(scene, reader, f, c, response, backend).clamp(0.0, 1.0)
+    return [TestBEV(f, ipm({c: render_view(scene, reader, f, c, response, backend, method=method).clamp(0.0, 1.0)
                             for c in ipm.cameras}), _labels(reader, f)) for f in frames]
 
 

@@ -27,7 +27,7 @@ from .pose_refine import POSES_KEY, PoseCorrections, align_poses
 if TYPE_CHECKING:
     from parksim.bundle import Bundle
 
-__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize", "group_means"]
+__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize", "group_means", "projection_of"]
 
 Response = Callable[[Tensor, str], Tensor]
 ViewPose = Callable[[str, int], Tensor]
@@ -35,12 +35,13 @@ ViewPose = Callable[[str, int], Tensor]
 
 
 def render_view(scene: GaussianScene, reader: DatasetReader, frame: int, camera: str, response: Response | None,
-                backend: str, rig: Rig | None = None, view_pose: ViewPose | None = None) -> Tensor:
+                backend: str, rig: Rig | None = None, view_pose: ViewPose | None = None, method: str = "ut") -> Tensor:
     """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped).
 
-    ``rig`` and ``view_pose`` default to the dataset's; pose refinement passes its refined rig and poses."""
+    ``rig`` and ``view_pose`` default to the dataset's; pose refinement passes its refined rig and poses;
+    ``method`` is the projection the scene was trained with (``projection_of(bundle)``)."""
     pose = (view_pose or reader.view_pose)(camera, frame)
-    image = render(scene, rig or reader.rig, pose, cameras=[camera], backend=backend).images[camera]
+    image = render(scene, rig or reader.rig, pose, cameras=[camera], backend=backend, method=method).images[camera]
     return response(image, camera) if response is not None else image
 
 
@@ -83,16 +84,16 @@ def group_means(report: EvalReport, groups: Mapping[str, Sequence[int]]) -> dict
 def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tuple[int, str]],
                    response: Response | None, backend: str = "auto", slots: bool = True,
                    side_by_side: Path | None = None, rig: Rig | None = None,
-                   view_pose: ViewPose | None = None) -> EvalReport:
+                   view_pose: ViewPose | None = None, method: str = "ut") -> EvalReport:
     """Score each ``(frame, camera)`` view against the dataset over the camera's scene mask (rendered with ``rig``
-    at ``view_pose``, the dataset's by default)."""
+    at ``view_pose``, the dataset's by default, by projection ``method``)."""
     rig, view_pose = rig or reader.rig, view_pose or reader.view_pose
     masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in {c for _, c in views}}
     segments = slot_segments(reader.map) if slots and reader.layout.map.is_file() else torch.zeros(0, 2, 2)
     report = EvalReport()
     for frame, camera in views:
         gt = reader.image(camera, frame)
-        pred = render_view(scene, reader, frame, camera, response, backend, rig, view_pose).clamp(0.0, 1.0)
+        pred = render_view(scene, reader, frame, camera, response, backend, rig, view_pose, method).clamp(0.0, 1.0)
         mask = masks[camera]
         row: dict[str, Any] = {"frame": frame, "camera": camera,
                                "psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask)}
@@ -108,6 +109,11 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
             write_image(side_by_side / f"{frame:06d}_{camera}.png", torch.cat([shown, gt], dim=1))
         report.views.append({k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in row.items()})
     return report
+
+
+def projection_of(bundle: Bundle) -> str:
+    """The projection a bundle's Gaussians were trained with (``run.projection``; bundles before it: UT)."""
+    return str(bundle.meta.get("projection", "ut"))
 
 
 def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int, str]], response: Response,
@@ -133,7 +139,7 @@ def _score_split(bundle: Bundle, reader: DatasetReader, response: Response, back
     rig, aligned, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
     view_pose = aligned.view_pose if aligned is not None else None
     report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=side_by_side, rig=rig,
-                            view_pose=view_pose)
+                            view_pose=view_pose, method=projection_of(bundle))
     return report, rig, aligned, alignment
 
 
@@ -196,7 +202,7 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
         masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}
         for row in report.views:
             pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend, rig,
-                               view_pose).clamp(0, 1)
+                               view_pose, projection_of(bundle)).clamp(0, 1)
             row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]), masks[row["camera"]])
     summary = summarize(report, reader.rig.names, frames)
     summary["overall"]["lpips"] = report.mean("lpips")

@@ -27,7 +27,7 @@ from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
 from .detectors import DecodeOptions, Detections, DMPRDetector
 from .detectors.protocols import ParkSimProtocol, Protocol
-from .evaluate import evaluate_views, group_means, offpath_split
+from .evaluate import evaluate_views, group_means, offpath_split, projection_of
 from .paper_tables import DETECTOR_TITLES, tables_markdown
 from .reconstruct import CONFIG_FILE
 from .response import CameraResponse
@@ -111,8 +111,10 @@ class _Split:
         response.load_dict(bundle.meta.get("camera_response", {}))
         frames = [f for fs in self.groups.values() for f in fs]
         views = [(f, c) for f in frames for c in reader.rig.names]
-        quality = group_means(evaluate_views(bundle.scene, reader, views, response, backend), self.groups)
-        bevs = rendered_bevs(bundle.scene, reader, frames, response, backend)
+        method = projection_of(bundle)
+        quality = group_means(evaluate_views(bundle.scene, reader, views, response, backend, method=method),
+                              self.groups)
+        bevs = rendered_bevs(bundle.scene, reader, frames, response, backend, method)
         return quality, bevs, {n: _by_group(m, bevs, self.groups, decode, protocol) for n, m in detectors.items()}
 
 

@@ -293,7 +293,7 @@ class Trainer:
                                     self.cfg.pose_opt.test_steps, self.cfg.run.backend,
                                     self.cfg.photometric.ssim_lambda).view_pose
         report = evaluate_views(scene, self.reader, self.test_views, self.response, self.cfg.run.backend,
-                                slots=False, rig=rig, view_pose=view_pose)
+                                slots=False, rig=rig, view_pose=view_pose, method=self.cfg.run.projection)
         return {"test_psnr": report.mean("psnr"), "test_ssim": report.mean("ssim")}
 
     def truncate_metrics(self) -> None:

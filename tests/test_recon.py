@@ -18,7 +18,7 @@ from parksim.bundle import load
 from parksim.data import DatasetReader
 from recon.checkpoint import CheckpointError, checkpoint_path
 from recon.config import ConfigError, TrainConfig, load_config
-from recon.evaluate import evaluate_views
+from recon.evaluate import evaluate_bundle, evaluate_views
 from recon.init import initial_scene
 from recon.losses import ssim_map
 from recon.plots import read_metrics
@@ -126,6 +126,13 @@ def test_ewa_projection_is_a_photometric_baseline_the_bundle_records(full_run: P
     assert load(out).meta["projection"] == "ewa" and load(full_run).meta["projection"] == "ut"
     first = [read_metrics(run / "metrics.jsonl")[0]["rgb_loss"] for run in (out, full_run)]
     assert first[0] != first[1]   # same seed and views: only the footprints differ
+    scored = evaluate_bundle(out, tiny_data, tmp_path / "eval", offpath=False)["overall"]["psnr"]
+    reader, bundle = DatasetReader(tiny_data), load(out)
+    response = CameraResponse(reader.rig, 0.0)
+    response.load_dict(bundle.meta["camera_response"])
+    views = [(f, c) for f in reader.split["test"] for c in reader.rig.names]
+    by = {m: evaluate_views(bundle.scene, reader, views, response, method=m).mean("psnr") for m in ("ewa", "ut")}
+    assert scored == by["ewa"] != by["ut"]   # eval renders a bundle with the projection it was trained with
     config["slot_aware"]["iterations"] = 5
     path.write_text(yaml.safe_dump(config))
     with pytest.raises(ConfigError, match="photometric-only baseline"):

@@ -48,7 +48,7 @@ def train_one(scene: str, data: Path, config: str, out: Path) -> dict[str, Any]:
     import os
     import shutil
 
-    from recon.evaluate import evaluate_views
+    from recon.evaluate import evaluate_views, projection_of
     from recon.plots import read_metrics
     from recon.reconstruct import reconstruct
     from recon.response import CameraResponse
@@ -64,7 +64,7 @@ def train_one(scene: str, data: Path, config: str, out: Path) -> dict[str, Any]:
     response = CameraResponse(reader.rig, 0.0)
     response.load_dict(bundle.meta["camera_response"])
     report = evaluate_views(bundle.scene, reader, [(f, c) for f in reader.split["test"] for c in reader.rig.names],
-                            response)
+                            response, method=projection_of(bundle))
     reached = next((r["elapsed_s"] for r in curve if r["test_psnr"] >= TARGET_DB), None)
     return {"scene": scene, "config": Path(config).stem, "curve": curve, "iterations": bundle.meta["iterations"],
             "cpu_s": max((r.get("cpu_s", 0.0) for r in records), default=0.0), "load_end": os.getloadavg()[0],
