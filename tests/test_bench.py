@@ -75,11 +75,15 @@ def test_scaling_fits_growth_exponents(tiny, tmp_path):
     assert "time ~ N^" in text and "time ~ pixels^" in text
 
 
-def test_train_records_psnr_against_time(tiny, tmp_path):
-    data, _ = outputs(bench(tmp_path, "train", "--data-root", str(tiny.parent)), "train")
+def test_train_records_psnr_against_time_and_off_the_path(tiny, tmp_path):
+    data, text = outputs(bench(tmp_path, "train", "--data-root", str(tiny.parent)), "train")
     (run,) = data["runs"]
     assert run["config"] == "tiny" and run["iterations"] == 20
     assert len(run["curve"]) >= 2 and all(math.isfinite(c["test_psnr"]) for c in run["curve"])
+    assert (tiny / "offpath" / "offpath.json").is_file()   # written for the benchmark when missing
+    groups = {g["group"]: g for g in run["offpath"]["groups"]}
+    assert {"lateral ±0.25 m", "yaw ±20 deg"} <= set(groups) and all(g["views"] for g in groups.values())
+    assert "| tiny | tiny | " in text and "| on path | lateral ±0.25 m |" in text and "| tiny PSNR | tiny SSIM |" in text
 
 
 def test_stress_counts_cases_and_failures(tmp_path):
