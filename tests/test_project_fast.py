@@ -142,6 +142,35 @@ def test_gradients_match_float64_autograd(name, dtype):
         assert err.max() <= 1e-3, (name_, err.max().item())
 
 
+def test_rows_without_incoming_gradient_are_skipped():
+    """The backward skips rows whose every incoming gradient is 0 (Gaussians drawn nowhere): their gradients
+    stay exactly 0, while a row with any nonzero component (one conic entry, or the depth alone) still gets the
+    gradient that the float64 torch path gives it."""
+    cam = cameras()["opencv"]
+    scene = random_scene(800, seed=4)
+    fused, leaves = project(scene, cam, torch.float64, "fused", grad=True)
+    ref, ref_leaves = project(scene, cam, torch.float64, "torch", grad=True)
+    g = torch.Generator().manual_seed(5)
+    w = [torch.randn(t.shape, generator=g, dtype=torch.float64) * (torch.rand(t.shape, generator=g) < 0.15)
+         for t in (ref.means2d, ref.conics, ref.depths)]
+    scale = ref.cov2d[:, :1].detach()   # conics scaled by the squared footprint, as above
+
+    def loss(p: Projected2D) -> torch.Tensor:
+        return sum((o * wi).sum() for o, wi in zip((p.means2d, p.conics * scale, p.depths), w))
+
+    grads, ref_grads = torch.autograd.grad(loss(fused), leaves), torch.autograd.grad(loss(ref), ref_leaves)
+    nowhere = torch.stack([wi.reshape(len(wi), -1).abs().sum(-1) for wi in w]).sum(0) == 0
+    assert 0.2 < nowhere.float().mean() < 0.8
+    for gf, gr in zip(grads, ref_grads):
+        assert not gf[fused.index[nowhere]].any()
+        kept = fused.index[~nowhere]
+        clear = gr[kept].norm(dim=-1) > 1e-6 * gr.norm(dim=-1).max()
+        assert clear.float().mean() > 0.5
+        assert gf[kept][clear].any(dim=-1).all()   # none of them skipped
+        err = (gf[kept] - gr[kept]).norm(dim=-1) / gr[kept].norm(dim=-1).clamp_min(1e-6 * gr.norm(dim=-1).max())
+        assert err.median() <= 1e-9
+
+
 def test_stress_rows_finite_and_differentiable_in_float32():
     cam = cameras()["opencv"]
     p, leaves = project(stress_rows(), cam, torch.float32, "fused", grad=True)

@@ -530,6 +530,10 @@ def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray,
     g_mu, g_L, G = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
     for i in range(start, stop):
         g = index[i]
+        if (g_means2d[i, 0] == 0.0 and g_means2d[i, 1] == 0.0 and g_conics[i, 0] == 0.0 and g_conics[i, 1] == 0.0
+                and g_conics[i, 2] == 0.0 and g_cov2d[i, 0] == 0.0 and g_cov2d[i, 1] == 0.0
+                and g_cov2d[i, 2] == 0.0 and g_depths[i] == 0.0):
+            continue   # drawn nowhere (occluded, or culled by the rasterizer): its gradients stay 0, as zeroed
         x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
         qw, qx, qy, qz, qn = _unit_quaternion(quats[g])
         for j in range(3):
@@ -585,7 +589,8 @@ def backward(index: np.ndarray, means: np.ndarray, quats: np.ndarray, log_scales
              grad_log_scales: np.ndarray, grad_rot: np.ndarray) -> None:
     """Gradients of ``forward``'s means, conics, covariances and depths w.r.t. means, quats, log-scales, rot.
 
-    Rows ``index`` of ``grad_means/quats/log_scales`` are written (the caller zeroes the rest);
+    Rows ``index`` of ``grad_means/quats/log_scales`` with a nonzero incoming gradient are written (the
+    caller zeroes the rest: a Gaussian drawn nowhere, most often an occluded one, has zero gradients);
     ``grad_rot[chunk]`` (zeroed by the caller) gets each chunk's partial sum of the ``rot`` gradient.
     """
     m = index.shape[0]
