@@ -186,6 +186,10 @@ def main() -> None:
                     help="torch intra-op threads (1: with 2, torch's small ops stall badly on a loaded machine)")
     ap.add_argument("--numba-threads", type=int, default=numba.config.NUMBA_NUM_THREADS,
                     help="numba threads (1: on a loaded machine each parallel launch waits for a second core)")
+    ap.add_argument("--cases", action="append", default=[],
+                    help="label prefix, e.g. '(a)' (repeatable): run only the cases whose label starts so")
+    ap.add_argument("--stages", action="store_true",
+                    help="also time case (b) stage by stage on one thread and count its Gaussian-pixel pairs")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.torch_threads)
@@ -207,6 +211,8 @@ def main() -> None:
         Case("(c) 4 cams + BEV, culling off", 200_000, s640, None, True, skip_off="cull"),
         Case("(c) 4 cams + BEV, early stop off", 200_000, s640, None, True, skip_off="early_stop"),
     ]
+    if args.cases:
+        cases = [c for c in cases if c.label.startswith(tuple(args.cases))]
     scenes: dict[int, SceneArrays] = {}
     lines = [f"- machine at start: {machine_line()}"]
     header = "| case | " + " | ".join(f"{s.name} wall / CPU ms" for s in stacks)
@@ -226,6 +232,10 @@ def main() -> None:
         table.append(row)
         print(row, f"(load {os.getloadavg()[0]:.1f})", flush=True)
     lines.append(f"- machine at end of (a)-(c): {machine_line()}")
+    if args.stages:
+        from render_stages import stage_table
+
+        table += ["", *stage_table(stacks, rigs, garage_arrays(args.dataset, 200_000), pose, s640, args.repeats)]
     report(args, lines, table)
 
 
