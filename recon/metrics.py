@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from parksim.camera import pixel_grid
+from parksim.camera import CameraModel, pixel_grid
 from parksim.rig import RigCamera
 
 from .losses import masked_mean, ssim_map
@@ -59,6 +60,19 @@ def _distance_to_segments(points: Tensor, segments: Tensor) -> Tensor:
     return out
 
 
+_RAYS: weakref.WeakKeyDictionary[CameraModel, tuple[Tensor, Tensor]] = weakref.WeakKeyDictionary()
+
+
+def _pixel_rays(model: CameraModel) -> tuple[Tensor, Tensor]:
+    """Unit rays ``[H, W, 3]`` (camera frame, float64) and lens validity ``[H, W]`` of every pixel centre, solved
+    once per camera model: evaluation asks for them at every view, and unprojection is a Newton solve per pixel."""
+    if model not in _RAYS:
+        grid = pixel_grid(model.width, model.height)
+        with torch.no_grad():
+            _RAYS[model] = (model.unproject(grid).to(torch.float64), model.pixel_valid(grid))
+    return _RAYS[model]
+
+
 def slot_region_mask(camera: RigCamera, T_world_vehicle: Tensor, segments: Tensor, depth: Tensor | None = None,
                      radius: float = SLOT_RADIUS) -> Tensor:
     """Bool ``[H, W]``: the pixel's ray meets the floor (z = 0) within ``radius`` of a slot line.
@@ -70,12 +84,13 @@ def slot_region_mask(camera: RigCamera, T_world_vehicle: Tensor, segments: Tenso
     if len(segments) == 0:
         return torch.zeros(model.height, model.width, dtype=torch.bool)
     T = T_world_vehicle.to(torch.float64) @ camera.T_vehicle_camera
-    rays = model.unproject(pixel_grid(model.width, model.height)) @ T[:3, :3].T
+    rays_camera, valid = _pixel_rays(model)
+    rays = rays_camera @ T[:3, :3].T
     origin = T[:3, 3]
     down = rays[..., 2] < -1e-6
     t = torch.where(down, -origin[2] / torch.where(down, rays[..., 2], -1.0), 0.0)
     hit = origin[:2] + t[..., None] * rays[..., :2]
-    mask = down & model.pixel_valid(pixel_grid(model.width, model.height))
+    mask = down & valid
     points = hit[mask]
     if len(points):
         lo, hi = points.amin(0) - radius, points.amax(0) + radius
