@@ -2,8 +2,11 @@
 
 Textures are built once per scene: a tileable concrete noise (1/f spectrum, FFT), floor paint
 coverage (anti-aliased polygons at 1 cm), oil stains, and a floor light map (pools of light
-under each fixture, contact shadows under cars and pillars). ``Shader.radiance`` turns ray
-hits into linear RGB; ``Sensor`` applies exposure, vignetting, gamma and noise per camera.
+under each fixture, contact shadows under cars and pillars). Where ``LayoutParams`` asks for them
+(worn/busy), also worn paint, a dirt map (tyre tracks, stains), wet patches, sign decals, wall
+grime, and a view-dependent floor reflection of the ceiling lights. ``Shader.radiance`` turns ray
+hits into linear RGB; ``Sensor`` applies exposure, white balance, vignetting, gamma and noise per
+camera.
 """
 
 from __future__ import annotations
@@ -71,7 +74,8 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
 
 
 class Shader:
-    """Linear radiance of ray hits: albedo (textures, paint, materials) times the light map."""
+    """Linear radiance of ray hits: albedo (textures, paint, materials, decals) times the light map, plus the
+    floor's specular reflection where it is wet or glossy."""
 
     def __init__(self, garage: Garage, boxes: BoxSet, materials: list[str],
                  colors: np.ndarray, seed: int) -> None:
