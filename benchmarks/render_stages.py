@@ -34,7 +34,7 @@ def _pairs_blended(offsets, gauss_ids, packed, tiles_x, last, width, height) -> 
                     p = packed[gauss_ids[k]]
                     dx, dy = np.float32(px) - p[0], np.float32(py) - p[1]
                     power = np.float32(-0.5) * (p[2] * dx * dx + p[4] * dy * dy) - p[3] * dx * dy
-                    total += _pair_alpha(p[5], power)[0] > 0.0
+                    total += int(_pair_alpha(p[5], power)[0] > 0.0)
     return total
 
 
