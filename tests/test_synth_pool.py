@@ -18,10 +18,10 @@ def _files(root):
 
 
 def test_pool_output_is_byte_identical_to_serial(tmp_path, tiny_data):
-    """The session's tiny dataset (written by the default pool) against a serial run in this process."""
-    serial = tmp_path / "serial"
-    assert main(["synth", "tiny", "-o", str(serial), "--workers", "1", "--quiet"]) == 0
-    pooled, ref = _files(tiny_data), _files(serial)
+    """Two pool workers against the session's tiny dataset (a job that small runs serially by default)."""
+    pool = tmp_path / "pool"
+    assert main(["synth", "tiny", "-o", str(pool), "--workers", "2", "--quiet"]) == 0
+    pooled, ref = _files(pool), _files(tiny_data)
     assert sorted(pooled) == sorted(ref)
     assert len([k for k in ref if k.startswith("images/")]) == 4 * get_preset("tiny").frames
     different = [k for k in ref if pooled[k] != ref[k]]

@@ -48,8 +48,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--motion-blur", metavar="SECONDS", type=number(0, 0.1),
                    help="shutter time for motion blur, 0 to 0.1 s (preset default: 0; busy: 1/60 s); 0 = none")
     p.add_argument("--workers", type=integer(1),
-                   help="processes rendering frames in parallel (default: all usable cores; 1 = serial, in "
-                        "this process); the output is byte-identical whatever the count")
+                   help="processes rendering frames in parallel (default: all usable cores, at most one per 8 "
+                        "frames at 640x480, so small jobs run serially; 1 = serial, in this process); the output "
+                        "is byte-identical whatever the count")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p

@@ -162,6 +162,11 @@ class _FrameWriter:
                                                origins, renderer.boxes_at(pose)))
 
 
+_FRAMES_PER_WORKER = 8
+"""The default pool has at most one worker per 8 frames' worth of 640x480 views: a worker's start-up (imports, its
+own renderer's textures) costs several such frames of CPU, and in serial mode the ray caster already uses every
+core (benchmarks/RESULTS_synth.md: 8 frames of scene1 ran 0.8x as fast on 2 workers as serially)."""
+
 _WORKER: _FrameWriter | None = None
 """The pool worker's own renderer and writer, built once by ``_init_worker``."""
 
@@ -189,7 +194,8 @@ def write_frames(preset: ScenePreset, writer: DatasetWriter, poses: np.ndarray, 
                  workers: int | None = None, progress: Callable[[int], Any] | None = None,
                  exposure_frames: Sequence[int] | None = None) -> None:
     """Render each pose, name the files by the matching frame id (also used for per-frame noise seeds), write
-    images, depth, IPM BEV and labels; ``workers`` None = all usable cores, 1 = serial in-process.
+    images, depth, IPM BEV and labels; ``workers`` None = all usable cores (os.sched_getaffinity) but at most one
+    per 8 frames' worth of 640x480 views (a small job such as ``tiny`` runs serially), 1 = serial in-process.
 
     ``exposure_frames``: the frame index whose auto-exposure drift each view uses (default: ``frames``), so an
     off-path view can share its recorded base frame's exposure. Frames are independent, so a process pool
@@ -202,7 +208,10 @@ def write_frames(preset: ScenePreset, writer: DatasetWriter, poses: np.ndarray, 
                          "frames: expected one each per view")
     if workers is not None and workers < 1:
         raise ValueError(f"write_frames: workers must be at least 1, got {workers}")
-    n = min(usable_cores() if workers is None else workers, len(frames))
+    if workers is None:  # all cores, but no more workers than the work pays for
+        work = len(frames) * preset.width * preset.height / (_FRAMES_PER_WORKER * 640 * 480)
+        workers = min(usable_cores(), max(1, int(work)))
+    n = min(workers, len(frames))
     jobs = list(zip(np.asarray(poses, np.float64), frames, exposure))
     if n <= 1:
         local = _FrameWriter(preset, writer.layout.root)
