@@ -19,6 +19,7 @@ __all__ = ["psnr", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
 SLOT_RADIUS = 0.5
 """Slot regions: pixels seeing the floor within this distance (m) of a painted slot line."""
 _CHUNK = 4096
+_CELL_M = 2.0  # m: floor cells that slot-region points are sorted into, so each chunk covers a small area
 _GROUND_TOLERANCE = 0.1  # m: how far behind the ground hit the true surface may be and still count as floor
 
 
@@ -48,15 +49,28 @@ def slot_segments(world_map: dict[str, Any]) -> Tensor:
     return torch.tensor(segs, dtype=torch.float64).reshape(-1, 2, 2)
 
 
-def _distance_to_segments(points: Tensor, segments: Tensor) -> Tensor:
-    """Distance of each 2D point ``[P, 2]`` to the nearest segment of ``[S, 2, 2]``."""
-    a, b = segments[:, 0], segments[:, 1]
-    ab = b - a
-    out = torch.empty(len(points), dtype=points.dtype)
+def _near_segments(points: Tensor, segments: Tensor, radius: float) -> Tensor:
+    """Bool ``[P]``: the 2D point ``[P, 2]`` lies within ``radius`` of a segment of ``[S, 2, 2]``.
+
+    Points are sorted into 2 m floor cells and go in chunks of neighbours; a chunk is tested only against the
+    segments whose bounding box comes within ``radius`` of the chunk's (any other segment is farther than ``radius``
+    from all its points)."""
+    lo_s, hi_s = segments.amin(1), segments.amax(1)
+    cell = torch.floor((points - points.amin(0)) / _CELL_M).to(torch.int64)
+    order = torch.argsort(cell[:, 0] * (int(cell[:, 1].max()) + 1) + cell[:, 1])
+    points = points[order]
+    near = torch.zeros(len(points), dtype=torch.bool)
     for start in range(0, len(points), _CHUNK):
-        p = points[start:start + _CHUNK, None]
-        t = (((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
-        out[start:start + _CHUNK] = (p - (a + t[..., None] * ab)).norm(dim=-1).amin(dim=1)
+        p = points[start:start + _CHUNK]
+        keep = ((hi_s >= p.amin(0) - radius) & (lo_s <= p.amax(0) + radius)).all(dim=1)
+        if not keep.any():
+            continue
+        a, ab = segments[keep, 0], segments[keep, 1] - segments[keep, 0]
+        q = p[:, None]
+        t = (((q - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp(min=1e-12)).clamp(0, 1)
+        near[start:start + _CHUNK] = (q - (a + t[..., None] * ab)).norm(dim=-1).amin(dim=1) <= radius
+    out = torch.empty_like(near)
+    out[order] = near
     return out
 
 
@@ -93,13 +107,7 @@ def slot_region_mask(camera: RigCamera, T_world_vehicle: Tensor, segments: Tenso
     mask = down & valid
     points = hit[mask]
     if len(points):
-        lo, hi = points.amin(0) - radius, points.amax(0) + radius
-        ends = segments.reshape(-1, 2, 2)
-        reach = ((ends.amax(1) >= lo) & (ends.amin(1) <= hi)).all(dim=1)
-        near = torch.zeros(len(points), dtype=torch.bool)
-        if reach.any():
-            near = _distance_to_segments(points, segments[reach]) <= radius
-        mask[mask.clone()] = near
+        mask[mask.clone()] = _near_segments(points, segments.reshape(-1, 2, 2), radius)
     if depth is not None:
         mask &= (depth <= 0) | (depth.to(torch.float64) >= t - _GROUND_TOLERANCE)
     return mask

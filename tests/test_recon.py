@@ -387,3 +387,31 @@ def test_every_registered_strategy_keeps_the_contract(name: str, tiny_data: Path
     again.load_state_dict(state)
     assert again.state_dict().keys() == state.keys()
     assert all(torch.equal(again.state_dict()[k], v) for k, v in state.items())
+
+
+def test_slot_region_mask_equals_the_brute_force_floor_distance(tiny_data: Path) -> None:
+    """Cached rays, 2 m cells and per-chunk segment culling change nothing: every pixel's ray hits the floor within
+    SLOT_RADIUS of some slot edge (distance to every edge, float64) exactly where the mask says so."""
+    from parksim.camera import pixel_grid
+    from recon.metrics import SLOT_RADIUS, slot_region_mask, slot_segments
+
+    reader = DatasetReader(tiny_data)
+    segments = slot_segments(reader.map)
+    a, ab = segments[:, 0], segments[:, 1] - segments[:, 0]
+    slot_pixels = 0
+    for frame in reader.split["test"]:
+        for name, cam in reader.rig.cameras.items():
+            T = reader.pose(frame).to(torch.float64) @ cam.T_vehicle_camera
+            grid = pixel_grid(cam.model.width, cam.model.height)
+            rays = cam.model.unproject(grid) @ T[:3, :3].T
+            down = rays[..., 2] < -1e-6
+            t = torch.where(down, -T[2, 3] / torch.where(down, rays[..., 2], -1.0), 0.0)
+            hit = (T[:2, 3] + t[..., None] * rays[..., :2])[..., None, :]
+            s = (((hit - a) * ab).sum(-1) / (ab * ab).sum(-1)).clamp(0, 1)
+            near = (hit - (a + s[..., None] * ab)).norm(dim=-1).amin(-1) <= SLOT_RADIUS
+            depth = reader.depth(name, frame)
+            expected = down & cam.model.pixel_valid(grid) & near & ((depth <= 0) | (depth >= t - 0.1))
+            mask = slot_region_mask(cam, reader.pose(frame), segments, depth)
+            assert torch.equal(mask, expected), (frame, name)
+            slot_pixels += int(mask.sum())
+    assert slot_pixels > 1000
