@@ -25,7 +25,9 @@ TARGET_DB = 28.0
 
 
 def ensure_dataset(scene: str, data_root: Path, resolution: str | None) -> Path:
-    """``data_root/<scene>_<width>`` (``<scene>`` without a resolution), made by ``parksim synth`` if missing."""
+    """``data_root/<scene>_<width>`` (``<scene>`` without a resolution or with ``native``), made by ``parksim synth``
+    if missing."""
+    resolution = None if resolution == "native" else resolution
     data = data_root / (f"{scene}_{resolution.split('x')[0]}" if resolution else scene)
     if not data.is_dir():
         cmd = [sys.executable, "-m", "parksim.cli", "synth", scene, "-o", str(data), "--quiet"]

@@ -95,7 +95,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     _option(t, "--scenes", ["scene1"], ["tiny"], "synth presets to train", _words)
     _option(t, "--configs", ["cpu_fast", "demo"], ["tiny"],
             "training configs (packaged preset names or YAML paths)", _words)
-    _option(t, "--resolution", "320x240", None, "synth resolution WxH (None: the preset's)")
+    _option(t, "--resolution", "320x240", "native", "synth resolution WxH, or native: the preset's own "
+            "(640x480; the 30-minute presets train at native)")
     t.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or synthesised")
     _common(t)
 
