@@ -20,21 +20,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from parksim.bench.common import cpu_model
+
 
 def _cpu_seconds() -> float:
     """User + system CPU of this process and of its reaped children (the pool's workers)."""
     own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> int:
@@ -69,7 +61,7 @@ def main() -> int:
             f"{preset.width}x{preset.height} ({datetime.datetime.now().isoformat(timespec='minutes')})\n\n"
             f"- command: `python benchmarks/bench_synth.py --preset {args.preset} --frames {args.frames} "
             f"--workers {args.workers} --repeats {args.repeats}` (medians over {args.repeats} interleaved run(s))\n"
-            f"- machine: {_cpu_model()}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
+            f"- machine: {cpu_model()}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
             f"Python {platform.python_version()}\n"
             f"- CPU = user + system time of the process and its pool workers; wall includes pool start-up (each "
             f"worker imports and builds its renderer once)\n\n"

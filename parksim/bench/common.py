@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 __all__ = ["ROOT", "RESULTS_MD", "Timing", "Written", "set_threads", "time_medians", "fit_exponent", "load_average",
-           "metadata", "meta_lines", "md_table", "progress", "write_result", "refresh_results_md", "pyplot",
-           "save_figure"]
+           "cpu_model", "metadata", "meta_lines", "md_table", "progress", "write_result", "refresh_results_md",
+           "pyplot", "save_figure"]
 
 ROOT = Path(__file__).resolve().parents[2]
 """The checkout (benchmarks/, tests/, configs/ live here)."""
@@ -85,7 +85,8 @@ def _commit() -> str:
     return head + ("+dirty" if dirty else "")
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
     cpuinfo = Path("/proc/cpuinfo")
     lines = cpuinfo.read_text().splitlines() if cpuinfo.is_file() else []
     return next((ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name")),
@@ -103,7 +104,7 @@ def metadata(command: str) -> dict[str, Any]:
     import torch
 
     return {"command": command, "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "commit": _commit(), "machine": f"{platform.node()}: {_cpu_model()}, {os.cpu_count()} cores",
+            "commit": _commit(), "machine": f"{platform.node()}: {cpu_model()}, {os.cpu_count()} cores",
             "python": platform.python_version(), "torch": torch.__version__, "numba": numba.__version__,
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
             "load_start": load_average()}
