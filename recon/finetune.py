@@ -18,7 +18,6 @@ from parksim.bundle import Bundle
 from parksim.data import DatasetReader
 
 from .config import TrainConfig, load_config
-from .params import GaussianParams
 from .trainer import Trainer
 
 __all__ = ["FINETUNE_ITERATIONS", "LR_SCALE", "bundle_config", "finetune_config", "finetune"]
@@ -66,15 +65,17 @@ def finetune(bundle: Bundle, reader: DatasetReader, iterations: int = FINETUNE_I
     cfg = finetune_config(config or TrainConfig(), iterations, bundle.scene.sh_degree)
     trainer = Trainer(reader, cfg, Path("."), log=lambda _: None)   # iteration() only: nothing is written
     trainer.response.load_dict(bundle.meta.get("camera_response", {}))
-    trainer.params = GaussianParams.from_scene(bundle.scene, bundle.scene.sh_degree, trainer._lrs())
+    trainer.initialise(bundle.scene)
+    params = trainer.params
+    assert params is not None   # initialise() sets it
     start, losses = time.perf_counter(), []
     for _ in tqdm(range(iterations), desc="fine-tuning", unit="it", disable=not progress, dynamic_ncols=True):
         losses.append(trainer.iteration()["loss"])
-    if len(trainer.params) != len(bundle.scene):
-        raise RuntimeError(f"fine-tuning changed the Gaussian count ({len(bundle.scene)} -> {len(trainer.params)})")
+    if len(params) != len(bundle.scene):
+        raise RuntimeError(f"fine-tuning changed the Gaussian count ({len(bundle.scene)} -> {len(params)})")
     head, tail = losses[:max(1, iterations // 10)], losses[-max(1, iterations // 10):]
     record = {"iterations": iterations, "lr_scale": LR_SCALE, "densify": "off",
               "loss_first_tenth": sum(head) / len(head), "loss_last_tenth": sum(tail) / len(tail),
               "seconds": round(time.perf_counter() - start, 1)}
     meta = {**bundle.meta, "camera_response": trainer.response.to_dict(), "finetune": record}
-    return Bundle(trainer.params.snapshot(), bundle.rig, bundle.map, meta, bundle.visibility, bundle.poses)
+    return Bundle(params.snapshot(), bundle.rig, bundle.map, meta, bundle.visibility, bundle.poses)

@@ -24,6 +24,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from parksim.data import DatasetReader
+from parksim.gaussians import GaussianScene
 from parksim.render import render
 
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
@@ -130,10 +131,13 @@ class Trainer:
         return {"means": lr.means * self.extent, "quats": lr.quats, "log_scales": lr.scales,
                 "opacity_logits": lr.opacity, "sh0": lr.sh0, "shN": lr.shN}
 
-    def initialise(self) -> None:
-        """Fresh parameters from the configured initial point cloud."""
-        scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree,
-                                              self.generator)
+    def initialise(self, scene: GaussianScene | None = None) -> None:
+        """Fresh parameters from the configured initial point cloud, or from ``scene`` (fine-tuning a bundle)."""
+        if scene is None:
+            scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree,
+                                                  self.generator)
+        else:
+            self.init_note = f"a given scene of {len(scene)} Gaussians"
         self.params = GaussianParams.from_scene(scene, self.cfg.photometric.sh_degree, self._lrs())
         self.log(f"initialised {len(scene)} Gaussians from {self.init_note}; scene extent {self.extent:.1f} m")
 
