@@ -162,9 +162,9 @@ class IPM:
         out = first.new_zeros(first.shape[0], first.shape[1], self.spec.height * self.spec.width)
         for name, (x, _, _) in planes.items():
             rows, grid, weight = self._taps[name]
-            grid = grid.to(x.dtype).expand(x.shape[0], -1, -1, -1)
+            grid = grid.to(x).expand(x.shape[0], -1, -1, -1)   # taps live on the CPU; images may not
             sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
-            out = out.index_add(2, rows, sampled * weight.to(x.dtype))
+            out = out.index_add(2, rows.to(x.device), sampled * weight.to(x))
         return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
 
     def _gather_applies(self, images: Mapping[str, Tensor]) -> bool:
@@ -244,7 +244,7 @@ class IPM:
         out = {}
         for name in cameras or self.cameras:
             grid, valid = self._back_grid(name)
-            grid = grid.to(x.dtype).expand(x.shape[0], -1, -1, -1)
+            grid = grid.to(x).expand(x.shape[0], -1, -1, -1)
             sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-            out[name] = _from_nchw(sampled * valid.to(x.dtype), batched, squeeze_c)
+            out[name] = _from_nchw(sampled * valid.to(x), batched, squeeze_c)
         return out

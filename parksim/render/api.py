@@ -160,7 +160,7 @@ def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor,
                              method=method, ut_params=ut_params, cull=cull)
     rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
     keep = _rows(proj.index, rows)
-    dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(dtype)
+    dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(scene.means)
     # A Gaussian centred exactly on the camera has no view direction: any unit vector does.
     colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12),
                      scene.sh_degree)
@@ -207,12 +207,12 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     if not scale > 0:
         raise ValueError(f"render: scale must be positive, got {scale}")
     view = _rig_view(rig, float(scale), names)
-    dtype = scene.means.dtype
-    T_world_vehicle = as_pose(pose)
-    background = torch.as_tensor(bg, dtype=dtype)
+    dtype, device = scene.means.dtype, scene.means.device
+    T_world_vehicle = as_pose(pose).to(device)   # rig, lens masks and background follow the scene's device
+    background = torch.as_tensor(bg, dtype=dtype, device=device)
     cams = [view.rig.cameras[name] for name in names]
-    T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera for cam in cams]
-    lenses = [view.lens_mask(name) for name in names]
+    T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams]
+    lenses = [view.lens_mask(name).to(device) for name in names]
     if _fast_path(scene, pose, cams, method, backend):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]

@@ -143,7 +143,7 @@ class Projected2D:
 def covariance_sqrt(quats: Tensor, log_scales: Tensor, R_cam_world: Tensor | None = None) -> Tensor:
     """``L[N,3,3]`` with ``Sigma_cam = L L^T = R_cw R(q) S^2 R(q)^T R_cw^T``; zero quaternions act as identity."""
     L = rotation_from_quaternion(quats) * torch.exp(log_scales)[..., None, :]
-    return L if R_cam_world is None else R_cam_world.to(L.dtype) @ L
+    return L if R_cam_world is None else R_cam_world.to(L) @ L
 
 
 def _cholesky_sqrt(covs: Tensor) -> Tensor:
@@ -166,7 +166,7 @@ def cull_mask(means_cam: Tensor, sigma_max: Tensor, camera: CameraModel, near: f
 
 def _sigma_point_moments(mu: Tensor, L: Tensor, camera: CameraModel, sp: SigmaPoints) -> tuple[Tensor, Tensor]:
     """2D mean ``[M,2]`` and covariance ``(a, b, c)`` ``[M,3]`` from sigma points through ``camera.project``."""
-    z, wm, wc = (t.to(mu.dtype) for t in (sp.z, sp.wm, sp.wc))
+    z, wm, wc = (t.to(mu) for t in (sp.z, sp.wm, sp.wc))
     pts = mu[:, None, :] + torch.einsum("mij,pj->mpi", L, z)
     uv, _ = camera.project(pts)
     rel = uv - uv[:, :1]          # relative to the centre point: no cancellation with large weights
