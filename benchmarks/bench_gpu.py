@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numba
 import torch
+from bench_render import BEV_PX, CAMERA, garage_arrays, load_pose
 
-from bench_render import CAMERA, BEV_PX, garage_arrays, load_pose
 from parksim.bench.common import cpu_model, time_medians
 from parksim.gaussians import GaussianScene
 from parksim.render.api import render
@@ -81,6 +81,7 @@ def views(scene: GaussianScene, rig: Rig, pose: torch.Tensor, scale: float, back
     """Four camera images and the BEV, rendered without gradients."""
     with torch.no_grad():
         out = render(scene, rig, pose, bev=True, scale=scale, backend=backend)
+    assert out.bev is not None
     return {**out.images, "BEV": out.bev}
 
 
