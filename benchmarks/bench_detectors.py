@@ -12,33 +12,27 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import sys
 from pathlib import Path
 
 import torch
 
+from parksim.bench.common import cpu_model
 from recon.detectors import load_detector
 from recon.detectors.evaluate import MatchOptions, evaluate_folder
 from recon.detectors.protocols import ParkSimProtocol
 from recon.detectors.train import TrainOptions, train_detector
 
 
-def _cpu() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown CPU"
-
-
-def _train(arch: str, data: list[Path], models: Path, stages: list[int], init: Path | None, seed: int) -> dict:
+def _train(arch: str, data: list[Path], models: Path, stages: list[int], init: Path | None, seed: int,
+           device: str) -> dict:
     """Train ``models/arch`` in stages (each a one-cycle schedule starting from the previous stage's weights;
     the first from ``init``), reusing finished stages; returns the last stage's train.json metadata."""
     for k, steps in enumerate(stages, 1):
         out = models / (arch if k == len(stages) else f"{arch}_stage{k}")
         if not (out / "train.json").is_file():
             train_detector(data, out, TrainOptions(arch=arch, steps=steps, seed=seed + k - 1,
-                                                   init=str(init) if init else None))
+                                                   init=str(init) if init else None, device=device))
         init = out
     return json.loads((models / arch / "train.json").read_text())
 
@@ -71,16 +65,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--gcn-steps", type=int, nargs="+", default=[TrainOptions().steps // 2],
                     help="GCN steps per stage; its backbone and point head start from the DMPR model")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu", help="cpu, or cuda to train on a GPU (evaluation runs on the CPU)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/RESULTS_detectors.md"))
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
 
-    metas = {"dmpr": _train("dmpr", args.data, args.models, args.dmpr_steps, None, args.seed)}
-    metas["gcn"] = _train("gcn", args.data, args.models, args.gcn_steps, args.models / "dmpr", args.seed)
+    metas = {"dmpr": _train("dmpr", args.data, args.models, args.dmpr_steps, None, args.seed, args.device)}
+    metas["gcn"] = _train("gcn", args.data, args.models, args.gcn_steps, args.models / "dmpr", args.seed, args.device)
+    gpu = f", trained on {torch.cuda.get_device_name()}" if args.device.startswith("cuda") else ""
     lines = ["# Parking-slot detectors on ground-truth BEVs", "",
              f"Command: `python {' '.join(sys.argv)}`  ",
-             f"Machine: {_cpu()}, {os.cpu_count()} cores, torch {torch.__version__} with 2 threads, shared with other "
-             f"jobs (load average at the end: {os.getloadavg()[0]:.1f})  ",
+             f"Machine: {cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__} with 2 threads{gpu}, "
+             f"load average at the end: {os.getloadavg()[0]:.1f}  ",
              f"Date: {datetime.datetime.now().isoformat(timespec='minutes')}", "",
              "Trained on the train frames, evaluated on the test frames (every 10th) of: "
              + ", ".join(f"`{d}`" for d in args.data) + ". Matching (ParkSim protocol, docs/detection_protocol.md): "

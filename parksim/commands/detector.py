@@ -35,6 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     t.add_argument("--seed", type=int, default=0, help="seed for weights, sampling and augmentation")
     t.add_argument("--threads", type=integer(1), default=2, help="torch CPU threads")
     t.add_argument("--init", type=Path, help="start from a trained detector's matching weights (GCN from DMPR)")
+    t.add_argument("--device", default="cpu", help="cpu, or cuda[:N] to train on a GPU (checkpoints load on CPU)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
 
     e = sub.add_parser("eval", help="precision, recall and AP of a detector on a data folder",
@@ -69,7 +70,7 @@ def _train(args: argparse.Namespace) -> int:
     check_output_folder(args.output)
     opts = TrainOptions(arch=args.arch, width=args.width, input_size=args.input_size, steps=args.steps,
                         batch_size=args.batch_size, lr=args.lr, seed=args.seed, threads=args.threads,
-                        init=str(args.init) if args.init else None)
+                        init=str(args.init) if args.init else None, device=args.device)
     path = train_detector(args.data, args.output, opts, progress=not args.quiet)
     print(f"wrote {path}")
     return 0

@@ -36,6 +36,7 @@ class TrainOptions:
     threads: int = 2
     checkpoint_every: int = 250
     init: str | None = None      # start from this checkpoint's matching weights (e.g. GCN from a DMPR model)
+    device: str = "cpu"          # "cuda" trains on the GPU (data are batched on the CPU and copied over)
 
     def __post_init__(self) -> None:
         if self.arch not in ("dmpr", "gcn"):
@@ -43,6 +44,8 @@ class TrainOptions:
         for name in ("steps", "batch_size", "threads", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.device.split(":")[0] not in ("cpu", "cuda"):
+            raise ValueError(f"device must be 'cpu' or 'cuda[:N]', got {self.device!r}")
         if not self.lr > 0:
             raise ValueError(f"lr must be positive, got {self.lr}")
 
@@ -51,7 +54,7 @@ def point_loss(maps: PointMaps, target: Tensor) -> Tensor:
     """DMPR-PS loss: confidence on every cell; shape, offset and direction only where a point is labelled."""
     logits = maps.logits
     pos = target[:, 0:1]
-    conf = F.binary_cross_entropy_with_logits(logits[:, 0:1], pos, pos_weight=torch.tensor(4.0))
+    conf = F.binary_cross_entropy_with_logits(logits[:, 0:1], pos, pos_weight=logits.new_tensor(4.0))
     n = pos.sum().clamp(min=1.0)
     shape = (F.binary_cross_entropy_with_logits(logits[:, 1:2], target[:, 1:2], reduction="none") * pos).sum() / n
     offset = (((maps.offset - target[:, 2:4]) ** 2) * pos).sum() / n
@@ -61,8 +64,8 @@ def point_loss(maps: PointMaps, target: Tensor) -> Tensor:
 
 def edge_loss(logits: Tensor, edges: Tensor, mask: Tensor) -> Tensor:
     """Binary cross-entropy over the ordered pairs of real, distinct nodes (slots are rare: positives weighted)."""
-    valid = mask[:, :, None] & mask[:, None, :] & ~torch.eye(mask.shape[1], dtype=torch.bool)[None]
-    loss = F.binary_cross_entropy_with_logits(logits, edges, reduction="none", pos_weight=torch.tensor(3.0))
+    valid = mask[:, :, None] & mask[:, None, :] & ~torch.eye(mask.shape[1], dtype=torch.bool, device=mask.device)[None]
+    loss = F.binary_cross_entropy_with_logits(logits, edges, reduction="none", pos_weight=logits.new_tensor(3.0))
     return (loss * valid).sum() / valid.sum().clamp(min=1)
 
 
@@ -99,7 +102,8 @@ def _init_seconds(init: str | None) -> float:
 def save_checkpoint(model: DMPRDetector, path: Path, extra: dict) -> None:
     """Write ``model`` (kind, constructor config, weights) and ``extra`` metadata atomically."""
     tmp = path.with_suffix(".tmp")
-    torch.save({"kind": model.kind, "config": model.config(), "state_dict": model.state_dict(), **extra}, tmp)
+    weights = {k: v.cpu() for k, v in model.state_dict().items()}   # loadable without the training device
+    torch.save({"kind": model.kind, "config": model.config(), "state_dict": weights, **extra}, tmp)
     tmp.replace(path)
 
 
@@ -116,6 +120,7 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
     model = build(opts)
     if opts.init:
         init_from(model, opts.init)
+    model.to(opts.device)
     data = TrainingSet(folders, opts.input_size)
     grid = opts.input_size // 32
     optim = torch.optim.AdamW(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
@@ -126,7 +131,7 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
     model.train()
     bar = tqdm(range(1, opts.steps + 1), desc=f"train {opts.arch}", unit="step", disable=not progress)
     for step in bar:
-        batch = data.batch(opts.batch_size, rng, grid)
+        batch = {k: v.to(opts.device) for k, v in data.batch(opts.batch_size, rng, grid).items()}
         maps, extras = model.run(batch["images"])
         losses = {"points": point_loss(maps, batch["points"])}
         if isinstance(model, GCNDetector):
