@@ -85,6 +85,14 @@ def test_train_records_psnr_against_time_and_off_the_path(tiny, tmp_path):
     assert {"lateral ±0.25 m", "yaw ±20 deg"} <= set(groups) and all(g["views"] for g in groups.values())
     assert "| tiny | tiny | " in text and "| on path | lateral ±0.25 m |" in text
     assert "| tiny PSNR | tiny SSIM |" in text
+    # --reuse takes the finished run and its evaluation as they are; --only-finished lists the pair never run
+    bundle_file = tmp_path / "work" / "tiny_tiny" / "gaussians.ply"
+    stamp = bundle_file.stat().st_mtime_ns
+    again, text = outputs(bench(tmp_path, "train", "--data-root", str(tiny.parent), "--configs", "tiny,demo",
+                                "--only-finished"), "train")
+    assert bundle_file.stat().st_mtime_ns == stamp and not (tmp_path / "work" / "tiny_demo").exists()
+    assert [r["config"] for r in again["runs"]] == ["tiny"] and again["runs"][0]["psnr"] == run["psnr"]
+    assert "Not run (no finished run in the work folder): tiny / demo" in text
 
 
 def test_stress_counts_cases_and_failures(tmp_path):

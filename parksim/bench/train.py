@@ -19,7 +19,7 @@ from typing import Any
 
 from .common import md_table, metadata, progress, pyplot, save_figure, write_result
 
-__all__ = ["run", "train_one", "ensure_dataset", "TARGET_DB"]
+__all__ = ["run", "train_one", "finished", "ensure_dataset", "TARGET_DB"]
 
 TARGET_DB = 28.0
 
@@ -61,23 +61,48 @@ def ensure_offpath(data: Path) -> None:
         write_offpath(data)
 
 
-def train_one(scene: str, data: Path, config: str, out: Path) -> dict[str, Any]:
-    """Train and evaluate one scene with one config; returns its curve, final numbers and off-path groups."""
+def finished(out: Path) -> bool:
+    """Whether ``out`` holds a finished run (its bundle written)."""
+    return (out / "bundle.json").is_file()
+
+
+def _evaluation(out: Path, data: Path, reuse: bool) -> dict[str, Any]:
+    """``parksim eval``'s result for the bundle in ``out``: read from ``out/eval/eval.json`` when reusing one made on
+    this dataset (and, if the dataset has an off-path split, with it), else computed and written there."""
+    import json
+
+    from recon.evaluate import evaluate_bundle
+
+    from ..synth.offpath import OFFPATH_DIR, OFFPATH_FILE
+
+    saved = out / "eval" / "eval.json"
+    if reuse and saved.is_file():
+        result: dict[str, Any] = json.loads(saved.read_text())
+        wants_offpath = (data / OFFPATH_DIR / OFFPATH_FILE).is_file()
+        if Path(result["dataset"]).resolve() == data.resolve() and (result.get("offpath") or not wants_offpath):
+            return result
+    return evaluate_bundle(out, data, out / "eval")
+
+
+def train_one(scene: str, data: Path, config: str, out: Path, reuse: bool = False) -> dict[str, Any]:
+    """Train and evaluate one scene with one config; returns its curve, final numbers and off-path groups.
+
+    With ``reuse`` a finished run in ``out`` (and its evaluation) is taken as it is instead of being redone."""
     import os
     import shutil
 
-    from recon.evaluate import evaluate_bundle
     from recon.plots import read_metrics
     from recon.reconstruct import reconstruct
 
     from ..bundle import load
 
-    shutil.rmtree(out, ignore_errors=True)
-    reconstruct(data, out, _config_with_eval(config, out.parent / f"{out.name}_config"), log=lambda _: None)
+    if not (reuse and finished(out)):
+        shutil.rmtree(out, ignore_errors=True)
+        reconstruct(data, out, _config_with_eval(config, out.parent / f"{out.name}_config"), log=lambda _: None)
     records = read_metrics(out / "metrics.jsonl")
     curve = [r for r in records if r.get("test_psnr") is not None]
     meta = load(out).meta
-    result = evaluate_bundle(out, data, out / "eval")
+    result = _evaluation(out, data, reuse)
     reached = next((r for r in curve if r["test_psnr"] >= TARGET_DB), None)
     return {"scene": scene, "config": Path(config).stem, "curve": curve, "iterations": meta["iterations"],
             "cpu_s": max((r.get("cpu_s", 0.0) for r in records), default=0.0), "load_end": os.getloadavg()[0],
@@ -122,12 +147,15 @@ def run(args: argparse.Namespace) -> Any:
     """Train every (scene, config) pair in turn; write ``train.json/md/png``."""
     meta = metadata(args.command_line)
     pairs = [(s, c) for s in args.scenes for c in args.configs]
+    skipped = [p for p in pairs if args.only_finished and not finished(_run_dir(args.work, *p))]
+    pairs = [p for p in pairs if p not in skipped]
     results = []
     with progress(len(pairs), "bench train", args.quiet) as bar:
         for scene, config in pairs:
             data = ensure_dataset(scene, args.data_root, args.resolution)
             ensure_offpath(data)
-            results.append(train_one(scene, data, config, args.work / f"{scene}_{Path(config).stem}"))
+            results.append(train_one(scene, data, config, _run_dir(args.work, scene, config),
+                                     args.reuse or args.only_finished))
             bar.update(1)
     rows = [(r["scene"], r["config"], r["iterations"], r["gaussians"], _minutes(r["train_s"]), _minutes(r["cpu_s"]),
              f"{r['load_end']:.1f}", _fmt(r["psnr"], 2), _fmt(r["ssim"], 3), _fmt(r["slot_psnr"], 2),
@@ -143,10 +171,17 @@ def run(args: argparse.Namespace) -> Any:
             "Off the recorded path (`parksim offpath`; docs/offpath.md): PSNR (slot-region PSNR) per group, both "
             "signs of each offset together:", "",
             *(md_table(headers, off_rows) if off_rows else ["(no off-path split)"]),
+            *(["", "Not run (no finished run in the work folder): "
+                + ", ".join(f"{sc} / {Path(c).stem}" for sc, c in skipped)] if skipped else []),
             "", "Curve points (minutes, test PSNR):", "",
             *(f"- {r['scene']} / {r['config']}: " + ", ".join(f"({c['elapsed_s'] / 60:.1f}, {c['test_psnr']:.2f})"
                                                               for c in r["curve"]) for r in results)]
     return write_result(args.out, "train", meta, {"runs": results}, body, lambda png: _plot(results, meta, png))
+
+
+def _run_dir(work: Path, scene: str, config: str) -> Path:
+    """Where the run of ``config`` on ``scene`` lives: ``work/<scene>_<config stem>``."""
+    return work / f"{scene}_{Path(config).stem}"
 
 
 def _offset_points(r: dict[str, Any], kind: str) -> tuple[list[float], list[float]]:

@@ -98,6 +98,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     _option(t, "--resolution", "320x240", "native", "synth resolution WxH, or native: the preset's own "
             "(640x480; the 30-minute presets train at native)")
     t.add_argument("--data-root", type=Path, default=Path("data"), help="where datasets are found or synthesised")
+    t.add_argument("--reuse", action="store_true",
+                   help="take finished runs in --work (WORK/<scene>_<config>) and their eval/eval.json as they are "
+                        "instead of retraining; pairs without one are trained")
+    t.add_argument("--only-finished", action="store_true",
+                   help="leave out the pairs with no finished run in --work (listed as not run); implies --reuse")
     _common(t)
 
     s = cmds.add_parser("scaling", help="latency vs number of Gaussians and of pixels, fitted growth exponents",
