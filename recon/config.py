@@ -98,7 +98,8 @@ class PhotometricConfig(_Strict):
     iterations: int = Field(20_000, ge=0)
     ssim_lambda: float = Field(0.2, ge=0, le=1)
     sh_degree: int = Field(3, ge=0, le=3)
-    sh_degree_interval: int = Field(1000, gt=0, description="raise the SH degree by one every this many iterations")
+    sh_degree_interval: int = Field(1000, ge=0, description="raise the SH degree by one every this many iterations "
+                                    "(0: the full degree from the first, as fine-tuning needs)")
 
 
 class RunConfig(_Strict):

@@ -43,7 +43,7 @@ def finetune_config(config: TrainConfig, iterations: int, sh_degree: int) -> Tra
     return config.model_copy(deep=True, update={
         "lr": lr.model_copy(update={"means": lr.means * lr.means_final_factor, "means_final_factor": 1.0, **scaled}),
         "photometric": config.photometric.model_copy(update={
-            "iterations": iterations, "sh_degree": sh_degree, "sh_degree_interval": 1}),
+            "iterations": iterations, "sh_degree": sh_degree, "sh_degree_interval": 0}),
         "slot_aware": config.slot_aware.model_copy(update={"iterations": 0}),
         "densify": config.densify.model_copy(update={
             "strategy": "adc", "adc": config.densify.adc.model_copy(update={"refine_stop": 0})}),

@@ -14,5 +14,6 @@ def exp_decay(step: int, total: int, lr_init: float, final_factor: float) -> flo
 
 
 def sh_degree_at(step: int, interval: int, max_degree: int) -> int:
-    """SH degree in use at ``step``: one more every ``interval`` steps, up to ``max_degree``."""
-    return min(step // interval, max_degree)
+    """SH degree in use at ``step``: one more every ``interval`` steps, up to ``max_degree`` (all of it from step 0
+    when ``interval`` is 0: a scene that already has its full degree, e.g. one being fine-tuned)."""
+    return max_degree if interval == 0 else min(step // interval, max_degree)

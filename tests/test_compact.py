@@ -295,3 +295,13 @@ def test_cli_fine_tunes_with_the_dataset_and_needs_one(garage, tiny_data, tmp_pa
     assert "fine-tuned 3 steps" in capsys.readouterr().out
     meta = bundle_io.load(out).meta
     assert meta["finetune"]["iterations"] == 3 and meta["compaction"]["ranking"] == "benefit-cost"
+
+
+def test_finetuning_renders_at_the_full_sh_degree_from_its_first_step():
+    """A fine-tuned scene already has its SH degree: no ramp from 0 (the training schedule's) on its first steps."""
+    from recon.finetune import finetune_config
+    from recon.schedule import sh_degree_at
+
+    ph = finetune_config(load_config("tiny"), 300, 3).photometric
+    assert [sh_degree_at(step, ph.sh_degree_interval, ph.sh_degree) for step in (0, 1, 2, 299)] == [3, 3, 3, 3]
+    assert [sh_degree_at(step, 500, 3) for step in (0, 499, 500, 1500, 9000)] == [0, 0, 1, 3, 3]
