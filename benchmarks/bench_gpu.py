@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numba
 import torch
-from bench_render import BEV_PX, CAMERA, garage_arrays, load_pose
+from bench_render import BEV_PX, CAMERA, Case, garage_arrays, load_pose
 
 from parksim.bench.common import cpu_model, time_medians
 from parksim.gaussians import GaussianScene
@@ -32,18 +32,6 @@ from parksim.rig import Rig
 
 TOLERANCE_PSNR_DB = 45.0
 TOLERANCE_SHARE = 0.999
-
-
-@dataclasses.dataclass(frozen=True)
-class Case:
-    """One timed configuration: Gaussians, image scale, cameras (None: all four), BEV, backward."""
-
-    label: str
-    n: int
-    scale: float
-    cameras: tuple[str, ...] | None
-    bev: bool
-    backward: bool = False
 
 
 def bev_rig(dataset: Path) -> Rig:
