@@ -28,6 +28,7 @@ import numba
 import torch
 
 from parksim import bundle as bundle_io
+from parksim.bench.common import cpu_model
 from parksim.client import LocalSim
 from parksim.compact import CompactOptions, Measurement, measure_bundle, reduce_bundle
 from parksim.data import DatasetReader
@@ -37,8 +38,9 @@ from recon.response import CameraResponse
 
 BUDGETS = (0.5, 0.35, 0.25, 0.15)
 """Fractions of the scene kept, decided before the first run."""
-SERIES = (("weight", False), ("benefit-cost", False), ("benefit-cost", True))
-"""(ranking, fine-tuned) per budget: the old ranking, the new one, the new one fine-tuned."""
+SERIES = (("weight", False), ("benefit-cost", False), ("benefit-cost", True), ("weight", True))
+"""(ranking, fine-tuned) per budget: the old ranking, the new one, the new one fine-tuned, and the old one
+fine-tuned (the control that tells the ranking's share from the fine-tuning's)."""
 
 
 @dataclasses.dataclass
@@ -128,7 +130,10 @@ def plot(variants: list[Variant], full: Variant, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     base = statistics.median(full.wall_ms)
-    for (ranking, tuned), colour in zip(SERIES, ("tab:grey", "tab:blue", "tab:green")):
+    controls = [v for v in variants if v.ranking is None]
+    ax.plot([statistics.median(v.wall_ms) for v in controls], [v.psnr for v in controls], "kP", markersize=9,
+            label="full scene + fine-tune (control), test")
+    for (ranking, tuned), colour in zip(SERIES, ("tab:grey", "tab:blue", "tab:green", "tab:orange")):
         rows = [v for v in variants if v.ranking == ranking and v.tuned == tuned]
         ms = [statistics.median(v.wall_ms) for v in rows]
         label = f"{ranking}{' + fine-tune' if tuned else ''}"
@@ -151,14 +156,6 @@ def plot(variants: list[Variant], full: Variant, path: Path) -> None:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=130)
-
-
-def cpu_model() -> str:
-    """The CPU's model name as lscpu prints it (from /proc/cpuinfo)."""
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return "unknown CPU"
 
 
 def main() -> None:
@@ -193,7 +190,12 @@ def main() -> None:
             torch.save((measured, measure_s, measure_cpu), args.measurement)
 
     full = Variant("full (reference)", LocalSim(full_bundle, "full"))
-    variants = make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune)
+    start = time.perf_counter()
+    tuned_full = finetune(full_bundle, reader, args.finetune, bundle_config(args.bundle, full_bundle.meta),
+                          progress=True)
+    control = Variant("full + fine-tune (control)", LocalSim(tuned_full, "full-tuned"), tuned=True,
+                      make_s=time.perf_counter() - start)
+    variants = [control, *make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune)]
     for v in [full, *variants]:
         v.psnr = mean_psnr(v.sim, reader, reader.split["test"])
         if offpath is not None:
@@ -210,7 +212,7 @@ def main() -> None:
     s, cam = full_bundle.scene, reader.rig.cameras[reader.rig.names[0]].model
     tuned = [v.make_s for v in variants if v.tuned]
     text = [
-        "## Pareto front: old ranking, benefit-cost ranking, benefit-cost + fine-tuning", "",
+        "## Pareto front: old ranking, benefit-cost ranking, each with and without fine-tuning", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
         f"--finetune {args.finetune} --cell {args.cell:g} --per-cell {args.per_cell} "
         f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats} --offpath-stride {args.offpath_stride}"
@@ -228,7 +230,8 @@ def main() -> None:
         f"of {args.cell:g} m ({args.per_cell} per cell), plus the benefit over "
         f"{len(reader.split['train']) * len(reader.rig.names)} training views: {measure_s:.0f} s wall / "
         f"{measure_cpu:.0f} s CPU, once for all budgets. Fine-tuning: {args.finetune} steps per budget "
-        f"(median {statistics.median(tuned):.0f} s wall).", "",
+        f"(median {statistics.median(tuned):.0f} s wall). The control row is the uncompacted scene fine-tuned the "
+        "same way: what the extra steps alone give.", "",
         f"Budgets (fixed in the script): {', '.join(f'{b:g}' for b in BUDGETS)} of the scene; no visibility grid; "
         "latency is `LocalSim.render(pose)` (what `parksim serve` runs), four cameras, no BEV, at the test poses, "
         f"median of {args.repeats} repeats after a warm-up, every variant timed alternately in one process; "
