@@ -293,3 +293,14 @@ def test_detector_module_imports_alone_in_a_fresh_interpreter(module):
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          cwd=Path(__file__).resolve().parents[1])
     assert run.returncode == 0, run.stderr
+
+
+def test_training_device_is_checked_before_training() -> None:
+    """A device other than cpu / cuda[:N] fails at once with its name; the default trains on the CPU."""
+    import pytest
+
+    from recon.detectors.train import TrainOptions
+
+    assert TrainOptions().device == "cpu" and TrainOptions(device="cuda:1").device == "cuda:1"
+    with pytest.raises(ValueError, match="'tpu'"):
+        TrainOptions(device="tpu")
