@@ -13,7 +13,6 @@ The tolerance was set before any GPU run: PSNR >= 45 dB and 99.9 % of pixels wit
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import datetime
 import math
 import platform
@@ -23,23 +22,16 @@ from pathlib import Path
 
 import numba
 import torch
-from bench_render import BEV_PX, CAMERA, Case, garage_arrays, load_pose
+from bench_render import CAMERA, Case, Stack, load_pose
 
 from parksim.bench.common import cpu_model, time_medians
+from parksim.bench.scenes import garage_scene
 from parksim.gaussians import GaussianScene
 from parksim.render.api import render
 from parksim.rig import Rig
 
 TOLERANCE_PSNR_DB = 45.0
 TOLERANCE_SHARE = 0.999
-
-
-def bev_rig(dataset: Path) -> Rig:
-    """The dataset's rig with a BEV_PX square BEV over the same ground extent (as ``bench_render.py``)."""
-    rig = Rig.load(dataset / "rig.json")
-    b = rig.bev
-    rig.bev = dataclasses.replace(b, width=BEV_PX, height=BEV_PX, m_per_px=b.m_per_px * b.width / BEV_PX)
-    return rig
 
 
 def closure(scene: GaussianScene, rig: Rig, pose: torch.Tensor, case: Case, backend: str) -> Callable[[], None]:
@@ -85,7 +77,7 @@ def main() -> None:
     args = ap.parse_args()
     if not torch.cuda.is_available():
         sys.exit("bench_gpu: no CUDA device")
-    rig, pose = bev_rig(args.dataset), load_pose(args.dataset, args.frame)
+    rig, pose = Stack("parksim").rig(args.dataset), load_pose(args.dataset, args.frame)
     base_w = rig.cameras[CAMERA].model.width
     s320, s640 = 320 / base_w, 640 / base_w
     cases = [Case("(a) 1 cam 320x240, 1e5, fwd", 100_000, s320, (CAMERA,), False),
@@ -100,8 +92,7 @@ def main() -> None:
     checks: list[str] = []
     for case in cases:
         if case.n not in scenes:
-            a = garage_arrays(args.dataset, case.n)
-            scenes[case.n] = GaussianScene(a.means, a.quats, a.log_scales, a.opacity_logits, a.sh, sh_degree=3)
+            scenes[case.n] = garage_scene(args.dataset, case.n, sh_degree=3)
         cpu_scene = scenes[case.n]
         gpu_scene = cpu_scene.to(device="cuda")
         t_cpu, t_gpu = time_medians([closure(cpu_scene, rig, pose, case, "numba"),
