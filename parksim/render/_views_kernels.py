@@ -13,32 +13,10 @@ import math
 import numba
 import numpy as np
 
-from ..gaussians import SH_C0
 from . import _project_kernels as pk
-from .sh import _C1, _C2, _C3
+from ._sh_kernels import TINY_DISTANCE, sh_basis
 
 __all__ = ["project_views"]
-
-
-@numba.njit(inline="always", cache=True)
-def _sh_basis(degree: int, x: float, y: float, z: float, basis: np.ndarray) -> int:
-    """Real SH basis of unit direction ``(x, y, z)`` up to ``degree`` into ``basis``; returns its length."""
-    basis[0] = SH_C0
-    if degree < 1:
-        return 1
-    basis[1], basis[2], basis[3] = -_C1 * y, _C1 * z, -_C1 * x
-    if degree < 2:
-        return 4
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    basis[4], basis[5], basis[6] = _C2[0] * xy, _C2[1] * yz, _C2[2] * (2 * zz - xx - yy)
-    basis[7], basis[8] = _C2[3] * xz, _C2[4] * (xx - yy)
-    if degree < 3:
-        return 9
-    basis[9], basis[10] = _C3[0] * y * (3 * xx - yy), _C3[1] * xy * z
-    basis[11], basis[12] = _C3[2] * y * (4 * zz - xx - yy), _C3[3] * z * (2 * zz - 3 * xx - 3 * yy)
-    basis[13], basis[14] = _C3[4] * x * (4 * zz - xx - yy), _C3[5] * z * (xx - yy)
-    basis[15] = _C3[6] * x * (xx - 3 * yy)
-    return 16
 
 
 @numba.njit(cache=True, fastmath=pk.FASTMATH, error_model="numpy")
@@ -115,8 +93,8 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
             out_conics[cam, g, 0], out_conics[cam, g, 1], out_conics[cam, g, 2] = c / det, -b / det, a / det
             out_depths[cam, g] = foot[5, i]
             dx, dy, dz = means[g, 0] - centres[cam, 0], means[g, 1] - centres[cam, 1], means[g, 2] - centres[cam, 2]
-            inv = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)  # a Gaussian at the camera: any direction
-            n_basis = _sh_basis(sh_degree, dx * inv, dy * inv, dz * inv, basis)
+            inv = 1.0 / max(math.sqrt(dx * dx + dy * dy + dz * dz), TINY_DISTANCE)  # at the camera: any direction
+            n_basis = sh_basis(sh_degree, dx * inv, dy * inv, dz * inv, basis)
             for ch in range(3):
                 acc = 0.0
                 for j in range(n_basis):

@@ -30,7 +30,7 @@ from .rasterize import rasterize, resolve_backend
 from .rasterize._kernels import finish_image
 from .rasterize.cpu import Image, composite_many
 from .scratch import thread_scratch
-from .sh import eval_sh
+from .view_colors import view_colors
 
 __all__ = ["render", "RenderResult", "bev_ipm"]
 
@@ -160,10 +160,7 @@ def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor,
                              method=method, ut_params=ut_params, cull=cull)
     rows = None if bool(proj.valid.all()) else proj.valid.nonzero().squeeze(1)
     keep = _rows(proj.index, rows)
-    dirs = scene.means.index_select(0, keep) - T_world_camera[:3, 3].to(scene.means)
-    # A Gaussian centred exactly on the camera has no view direction: any unit vector does.
-    colors = eval_sh(scene.sh.index_select(0, keep), dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12),
-                     scene.sh_degree)
+    colors = view_colors(scene.sh, scene.means, keep, T_world_camera[:3, 3].to(scene.means), scene.sh_degree)
     return rasterize(_rows(proj.means2d, rows), _rows(proj.conics, rows), colors, opacity.index_select(0, keep),
                      _rows(proj.depths, rows), cam.model.width, cam.model.height, backend=backend, bg=background)
 
