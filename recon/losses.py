@@ -73,7 +73,7 @@ class _DSSIM(torch.autograd.Function):
         dtype = planes[0].dtype
         taps, consts = _WINDOW.numpy().astype(dtype), np.array([2.0, _C1, _C2], dtype)
         moments, ssim = np.empty((b * c, 5, h, w), dtype), np.empty((b * c, h, w), dtype)
-        kernels.dssim_forward(*planes, taps, consts, moments, ssim)
+        kernels.dssim_forward(planes[0], planes[1], taps, consts, moments, ssim)
         weight = mask.detach().to(pred).expand(b, c, h, w)
         denom = weight.sum().clamp(min=1.0)
         ctx.state = (planes, taps, consts, moments, ssim, weight, denom)
@@ -84,7 +84,7 @@ class _DSSIM(torch.autograd.Function):
         planes, taps, consts, moments, ssim, weight, denom = ctx.state
         grad_ssim = np.ascontiguousarray((-grad * weight / denom).reshape(ssim.shape).numpy())
         grad_pred = np.empty_like(planes[0])
-        kernels.dssim_backward(*planes, taps, consts, moments, ssim, grad_ssim, grad_pred)
+        kernels.dssim_backward(planes[0], planes[1], taps, consts, moments, ssim, grad_ssim, grad_pred)
         return torch.from_numpy(grad_pred).view(weight.shape), None, None
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from recon.losses import SSIM_WINDOW, _DSSIM, dssim_loss, masked_mean, ssim_map
+from recon.losses import _DSSIM, SSIM_WINDOW, dssim_loss, masked_mean, ssim_map
 
 
 def _reference(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
