@@ -179,7 +179,7 @@ def _dataset(args: argparse.Namespace) -> Path:
 # subcommand -> (module in parksim.bench, its entry function, RESULTS.md section title)
 SUBCOMMANDS = {
     "render": ("render", "run", "Render: latency vs error over the user's knobs (`parksim bench render`)"),
-    "train": ("train", "run", "Training: test PSNR vs wall-clock (`parksim bench train`)"),
+    "train": ("train", "run", "Training: test PSNR vs CPU minutes (`parksim bench train`)"),
     "scaling": ("scaling", "run", "Scaling: latency vs Gaussians and pixels (`parksim bench scaling`)"),
     "stress": ("stress", "run", "Stress campaign (`parksim bench stress`)"),
     "soak-train": ("soak", "soak_train", "Soak: long training run (`parksim bench soak-train`)"),
