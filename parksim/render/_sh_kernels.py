@@ -97,10 +97,8 @@ def colors_forward(keep: np.ndarray, means: np.ndarray, centre: np.ndarray, sh: 
 
 @numba.njit(parallel=True, cache=True)
 def colors_backward(keep: np.ndarray, means: np.ndarray, centre: np.ndarray, sh: np.ndarray, degree: int,
-                    rgb: np.ndarray, grad_rgb: np.ndarray, grad_sh: np.ndarray, grad_means: np.ndarray,
-                    grad_view: np.ndarray) -> None:
-    """Gradients of ``colors_forward``: into rows keep[i] of zeroed grad_sh and grad_means (keep is unique),
-    and the gradient of each view offset into grad_view[i] (the camera centre's is minus their sum)."""
+                    rgb: np.ndarray, grad_rgb: np.ndarray, grad_sh: np.ndarray, grad_means: np.ndarray) -> None:
+    """Gradients of ``colors_forward`` into rows keep[i] of zeroed grad_sh and grad_means (keep is unique)."""
     for chunk in numba.prange((keep.shape[0] + CHUNK - 1) // CHUNK):
         basis = np.empty(16, means.dtype)
         g_basis = np.zeros(16, means.dtype)   # entries past the degree's basis stay 0
@@ -120,4 +118,3 @@ def colors_backward(keep: np.ndarray, means: np.ndarray, centre: np.ndarray, sh:
             radial = x * gx + y * gy + z * gz if n > TINY_DISTANCE else 0.0   # the clamped length passes none
             gx, gy, gz = (gx - x * radial) / n, (gy - y * radial) / n, (gz - z * radial) / n
             grad_means[g, 0], grad_means[g, 1], grad_means[g, 2] = gx, gy, gz
-            grad_view[i, 0], grad_view[i, 1], grad_view[i, 2] = gx, gy, gz

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from . import _sh_kernels as kernels
+from .project_fast import _np
 from .sh import eval_sh
 
 __all__ = ["view_colors", "view_colors_torch"]
@@ -27,19 +28,14 @@ def view_colors_torch(sh: Tensor, means: Tensor, keep: Tensor, centre: Tensor, d
     return eval_sh(sh.index_select(0, keep), unit, degree)
 
 
-def _np(t: Tensor) -> np.ndarray:
-    """Contiguous numpy view (or copy) of a detached CPU tensor."""
-    return np.ascontiguousarray(t.detach().numpy())
-
-
 class _ViewColors(torch.autograd.Function):
     """CPU colours by the numba kernels; the backward writes full-size gradients for sh and means directly."""
 
     @staticmethod
     def forward(ctx: Any, sh: Tensor, means: Tensor, keep: Tensor, centre: Tensor, degree: int) -> Tensor:
-        keep_np = _np(keep).astype(np.int64, copy=False)
-        rgb = np.empty((keep_np.shape[0], 3), _np(means).dtype)
-        kernels.colors_forward(keep_np, _np(means), _np(centre), _np(sh), degree, rgb)
+        keep_np, means_np = _np(keep).astype(np.int64, copy=False), _np(means)
+        rgb = np.empty((keep_np.shape[0], 3), means_np.dtype)
+        kernels.colors_forward(keep_np, means_np, _np(centre), _np(sh), degree, rgb)
         ctx.degree = degree
         out = torch.from_numpy(rgb)
         ctx.save_for_backward(sh, means, keep, centre, out)
@@ -50,11 +46,12 @@ class _ViewColors(torch.autograd.Function):
         sh, means, keep, centre, rgb = ctx.saved_tensors
         grad_sh = np.zeros(tuple(sh.shape), _np(sh).dtype)
         grad_means = np.zeros(tuple(means.shape), _np(means).dtype)
-        grad_view = np.empty((keep.shape[0], 3), grad_means.dtype)
         kernels.colors_backward(_np(keep).astype(np.int64, copy=False), _np(means), _np(centre), _np(sh),
-                                ctx.degree, _np(rgb), _np(grad_rgb.to(rgb.dtype)), grad_sh, grad_means, grad_view)
-        grad_centre = -torch.from_numpy(grad_view).sum(0) if ctx.needs_input_grad[3] else None
-        return torch.from_numpy(grad_sh), torch.from_numpy(grad_means), None, grad_centre, None
+                                ctx.degree, _np(rgb), _np(grad_rgb.to(rgb.dtype)), grad_sh, grad_means)
+        g_means = torch.from_numpy(grad_means)
+        # the centre moves every view offset against the means: minus their gradient's sum (rows not kept are 0)
+        grad_centre = -g_means.sum(0) if ctx.needs_input_grad[3] else None
+        return torch.from_numpy(grad_sh), g_means, None, grad_centre, None
 
 
 def view_colors(sh: Tensor, means: Tensor, keep: Tensor, centre: Tensor, degree: int) -> Tensor:
