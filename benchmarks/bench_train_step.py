@@ -8,6 +8,9 @@ process (two ``recon`` packages cannot share one):
 
     .venv/bin/python benchmarks/bench_train_step.py --run out/bench/scene1_cpu_30min --dataset data/scene1 \\
         --reference /tmp/old --rounds 2 --iterations 25
+
+``--profile N`` instead runs N steps of this tree under the torch profiler and prints where their CPU goes
+(numba kernels appear under their autograd Function's name).
 """
 
 from __future__ import annotations
@@ -21,13 +24,13 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def measure(run: Path, dataset: Path, iterations: int, warmup: int) -> dict[str, float | int | str]:
-    """Time ``iterations`` steps after ``warmup`` untimed ones (kernel compilation, allocator warm-up)."""
-    import parksim
+def resumed_trainer(run: Path, dataset: Path, scratch: Path) -> Any:
+    """A ``Trainer`` at the run's last checkpoint with its photometric phase extended (every step photometric)."""
     from parksim.data import DatasetReader
     from recon.checkpoint import checkpoint_path, load_checkpoint
     from recon.config import load_config
@@ -37,10 +40,18 @@ def measure(run: Path, dataset: Path, iterations: int, warmup: int) -> dict[str,
     config = config.model_copy(update={"photometric": config.photometric.model_copy(update={"iterations": 10**9})})
     state = load_checkpoint(checkpoint_path(run))
     state["config"] = config.model_dump(mode="json")   # the same run, with its photometric phase extended
+    trainer = Trainer(DatasetReader(dataset), config, scratch, lambda _: None)
+    trainer.decode_inputs()
+    trainer.resume(state)
+    return trainer
+
+
+def measure(run: Path, dataset: Path, iterations: int, warmup: int) -> dict[str, float | int | str]:
+    """Time ``iterations`` steps after ``warmup`` untimed ones (kernel compilation, allocator warm-up)."""
+    import parksim
+
     with tempfile.TemporaryDirectory() as scratch:
-        trainer = Trainer(DatasetReader(dataset), config, Path(scratch), lambda _: None)
-        trainer.decode_inputs()
-        trainer.resume(state)
+        trainer = resumed_trainer(run, dataset, Path(scratch))
         walls, cpus = [], []
         for i in range(warmup + iterations):
             wall, cpu = time.perf_counter(), time.process_time()
@@ -51,6 +62,21 @@ def measure(run: Path, dataset: Path, iterations: int, warmup: int) -> dict[str,
     gaussians = len(trainer.params) if trainer.params is not None else 0
     return {"package": str(Path(parksim.__file__).parent.parent), "gaussians": gaussians,
             "wall_ms": 1000 * statistics.median(walls), "cpu_ms": 1000 * statistics.median(cpus)}
+
+
+def profile(run: Path, dataset: Path, steps: int, warmup: int) -> str:
+    """The torch profiler's table (self CPU per op, top 20) over ``steps`` steps after ``warmup``."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    with tempfile.TemporaryDirectory() as scratch:
+        trainer = resumed_trainer(run, dataset, Path(scratch))
+        for _ in range(warmup):
+            trainer.iteration()
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            for _ in range(steps):
+                trainer.iteration()
+    return str(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20, max_name_column_width=40))
 
 
 def _child(path: Path, args: argparse.Namespace) -> dict[str, float | int | str]:
@@ -71,11 +97,17 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=5, help="untimed iterations first")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--reference", type=Path, default=None, help="folder holding older parksim/ and recon/")
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="profile N steps of this tree instead of timing (torch profiler, self CPU per op)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     args.run, args.dataset = args.run.resolve(), args.dataset.resolve()
     if args.child:
         print(json.dumps(measure(args.run, args.dataset, args.iterations, args.warmup)))
+        return
+    if args.profile:
+        print(f"- command: `.venv/bin/python benchmarks/bench_train_step.py {' '.join(sys.argv[1:])}`\n")
+        print(profile(args.run, args.dataset, args.profile, args.warmup))
         return
     trees = [ROOT] + ([args.reference.resolve()] if args.reference else [])
     rows = [(round_, _child(tree, args)) for round_ in range(args.rounds) for tree in trees]
