@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numba
 import torch
-from bench_render import CAMERA, Case, Stack, load_pose
+from bench_render import CAMERA, Case, Stack, load_pose, render_case
 
 from parksim.bench.common import cpu_model, time_medians
 from parksim.bench.scenes import garage_scene
@@ -44,13 +44,7 @@ def closure(scene: GaussianScene, rig: Rig, pose: torch.Tensor, case: Case, back
     weights: dict[str, torch.Tensor] = {}
 
     def once() -> None:
-        with torch.set_grad_enabled(case.backward):
-            out = render(scene, rig, pose, cameras=case.cameras, bev=case.bev, scale=case.scale, backend=backend)
-        if case.backward:
-            for name, img in out.images.items():
-                if name not in weights:
-                    weights[name] = torch.rand(img.shape, generator=torch.Generator().manual_seed(1)).to(img)
-            sum((img * weights[name]).sum() for name, img in out.images.items()).backward()
+        render_case(render, scene, rig, pose, case, weights, backend=backend)
         if cuda:
             torch.cuda.synchronize()
 

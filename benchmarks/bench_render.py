@@ -31,6 +31,7 @@ import platform
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numba
 import torch
@@ -157,15 +158,23 @@ def run_case(stack: Stack, case: Case, arrays: SceneArrays, rig: object, pose: t
 
     def once() -> None:
         torch.set_num_threads(threads)  # numba kernels of an older copy leave torch at numba's count
-        with switch(), torch.set_grad_enabled(case.backward):
-            out = stack.render(scene, rig, pose, cameras=case.cameras, bev=case.bev, scale=case.scale)
-        if case.backward:
-            for name, img in out.images.items():
-                if name not in weights:
-                    weights[name] = torch.rand(img.shape, generator=torch.Generator().manual_seed(1))
-            sum((img * weights[name]).sum() for name, img in out.images.items()).backward()
+        with switch():
+            render_case(stack.render, scene, rig, pose, case, weights)
 
     return once
+
+
+def render_case(render_fn: Callable[..., Any], scene: Any, rig: object, pose: torch.Tensor, case: Case,
+                weights: dict[str, torch.Tensor], **kwargs: Any) -> None:
+    """Render ``case`` once; with ``case.backward`` also back-propagate a fixed random weighting of the images
+    (drawn once per camera into ``weights``, on the images' device, so every call does the same work)."""
+    with torch.set_grad_enabled(case.backward):
+        out = render_fn(scene, rig, pose, cameras=case.cameras, bev=case.bev, scale=case.scale, **kwargs)
+    if case.backward:
+        for name, img in out.images.items():
+            if name not in weights:
+                weights[name] = torch.rand(img.shape, generator=torch.Generator().manual_seed(1)).to(img)
+        sum((img * weights[name]).sum() for name, img in out.images.items()).backward()
 
 
 def machine_line() -> str:

@@ -40,16 +40,19 @@ def test_matches_torch_in_float64(b: int, h: int, w: int) -> None:
     assert (got_grad - want_grad).abs().max().item() <= 256 * eps * want_grad.abs().max().item()
 
 
-def test_float32_within_its_rounding() -> None:
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA"))])
+def test_float32_within_its_rounding(device: str) -> None:
+    """``dssim_loss`` in float32 (the numba kernels on the CPU, torch's convolutions on CUDA) against float64."""
     pred, gt, mask = _case(1, 48, 64, torch.float64, 1)
     want, want_grad = _value_and_grad(_reference, pred, gt, mask)
-    got, got_grad = _value_and_grad(_DSSIM.apply, pred.float(), gt.float(), mask.float())
-    assert got_grad.dtype == torch.float32 and torch.isfinite(got_grad).all()
-    # measured over 5 seeds: value within 0.5 float32 eps of float64, gradient within 5 eps of its largest
-    # entry (torch's own float32 path: the same); the bound leaves room for other hosts' fused-kernel rounding.
+    got, got_grad = _value_and_grad(dssim_loss, *(t.float().to(device) for t in (pred, gt, mask)))
+    assert got_grad.dtype == torch.float32 and got_grad.device.type == device and torch.isfinite(got_grad).all()
+    # measured over 5 seeds on the CPU: value within 0.5 float32 eps of float64, gradient within 5 eps of its
+    # largest entry (torch's own float32 path: the same); the bound leaves room for other hosts' rounding.
     eps = torch.finfo(torch.float32).eps
     assert abs(got - want) <= 64 * eps
-    assert (got_grad.double() - want_grad).abs().max().item() <= 64 * eps * want_grad.abs().max().item()
+    assert (got_grad.cpu().double() - want_grad).abs().max().item() <= 64 * eps * want_grad.abs().max().item()
 
 
 def test_dispatch_keeps_torch_where_the_kernels_do_not_apply() -> None:

@@ -57,15 +57,17 @@ class _RigView:
 
     rig: Rig
     ipm: IPM | None = None
-    lens: dict[str, Tensor] = field(default_factory=dict)
+    lens: dict[tuple[str, torch.device], Tensor] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def lens_mask(self, name: str) -> Tensor:
-        """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing)."""
-        if name not in self.lens:
+    def lens_mask(self, name: str, device: torch.device) -> Tensor:
+        """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing), kept on
+        ``device`` so that a GPU render does not copy it every call."""
+        key = (name, device)
+        if key not in self.lens:
             m = self.rig.cameras[name].model
-            self.lens[name] = m.pixel_valid(pixel_grid(m.width, m.height))
-        return self.lens[name]
+            self.lens[key] = m.pixel_valid(pixel_grid(m.width, m.height)).to(device)
+        return self.lens[key]
 
 
 _VIEWS: OrderedDict[tuple[int, float, tuple[str, ...]], tuple[weakref.ref, _RigView]] = OrderedDict()
@@ -209,7 +211,7 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     background = torch.as_tensor(bg, dtype=dtype, device=device)
     cams = [view.rig.cameras[name] for name in names]
     T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams]
-    lenses = [view.lens_mask(name).to(device) for name in names]
+    lenses = [view.lens_mask(name, device) for name in names]
     if _fast_path(scene, pose, cams, method, backend):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
