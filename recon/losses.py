@@ -49,7 +49,7 @@ def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
     """
     c = pred.shape[1]
     stack = torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], dim=1)
-    n, w = stack.shape[1], _WINDOW.to(pred.dtype)
+    n, w = stack.shape[1], _WINDOW.to(pred)
     r = SSIM_WINDOW // 2
     stack = F.pad(stack, (r, r, r, r), mode="reflect")
     stack = F.conv2d(stack, w.view(1, 1, 1, -1).expand(n, 1, 1, -1), groups=n)
