@@ -88,10 +88,10 @@ def time_alternating(variants: list[Variant], poses: list[list[float]], repeats:
 
 
 def make_variants(full: bundle_io.Bundle, measured: Measurement, base: CompactOptions, reader: DatasetReader,
-                  bundle_dir: Path, steps: int) -> list[Variant]:
+                  bundle_dir: Path, steps: int, budgets: tuple[float, ...]) -> list[Variant]:
     """One compact scene per budget and series, fine-tuning where the series says so (timed)."""
     config, out = bundle_config(bundle_dir, full.meta), []
-    for budget in BUDGETS:
+    for budget in budgets:
         for ranking, tuned in SERIES:
             opts = dataclasses.replace(base, budget=budget, ranking=ranking)
             start = time.perf_counter()
@@ -104,16 +104,17 @@ def make_variants(full: bundle_io.Bundle, measured: Measurement, base: CompactOp
     return out
 
 
-def table(variants: list[Variant], full: Variant, offpath: bool) -> list[str]:
-    """Markdown rows: count, latency (wall, CPU), speed-up and PSNR (loss) against the full bundle."""
+def table(variants: list[Variant], full: Variant, control: Variant, offpath: bool) -> list[str]:
+    """Markdown rows: count, latency (wall, CPU), speed-up and PSNR (loss) against the full bundle, and the test
+    loss against the control (the full bundle fine-tuned as the compact ones are)."""
     base_ms = statistics.median(full.wall_ms)
     head = ("| variant | Gaussians | render ms wall (median) | render ms CPU (median) | speed-up | test PSNR dB | "
-            "loss dB |" + (" off-path PSNR dB | off-path loss dB |" if offpath else ""))
+            "loss dB | loss vs control dB |" + (" off-path PSNR dB | off-path loss dB |" if offpath else ""))
     lines = [head, "|" + " --- |" * head.count(" |")]
     for v in variants:
         ms = statistics.median(v.wall_ms)
         row = (f"| {v.name} | {len(v.sim.bundle.scene)} | {ms:.1f} | {statistics.median(v.cpu_ms):.1f} | "
-               f"{base_ms / ms:.2f}x | {v.psnr:.2f} | {full.psnr - v.psnr:.2f} |")
+               f"{base_ms / ms:.2f}x | {v.psnr:.2f} | {full.psnr - v.psnr:.2f} | {control.psnr - v.psnr:.2f} |")
         if offpath:
             assert v.offpath_psnr is not None and full.offpath_psnr is not None
             row += f" {v.offpath_psnr:.2f} | {full.offpath_psnr - v.offpath_psnr:.2f} |"
@@ -163,6 +164,9 @@ def main() -> None:
     parser.add_argument("--bundle", type=Path, required=True)
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--finetune", type=int, default=FINETUNE_ITERATIONS, help="fine-tuning steps")
+    parser.add_argument("--budgets", type=lambda t: tuple(float(x) for x in t.split(",")), default=BUDGETS,
+                        help="comma-separated fractions of the scene (default: the fixed BUDGETS); say in the "
+                             "results when a run's budgets were chosen after seeing another run")
     parser.add_argument("--cell", type=float, default=4.0)
     parser.add_argument("--per-cell", type=int, default=8)
     parser.add_argument("--sh-tolerance", type=float, default=0.01)
@@ -195,7 +199,8 @@ def main() -> None:
                           progress=True)
     control = Variant("full + fine-tune (control)", LocalSim(tuned_full, "full-tuned"), tuned=True,
                       make_s=time.perf_counter() - start)
-    variants = [control, *make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune)]
+    variants = [control, *make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune,
+                                        args.budgets)]
     for v in [full, *variants]:
         v.psnr = mean_psnr(v.sim, reader, reader.split["test"])
         if offpath is not None:
@@ -204,7 +209,7 @@ def main() -> None:
               + (f", off-path {v.offpath_psnr:.2f} dB" if v.offpath_psnr is not None else ""), flush=True)
     poses = [xy_yaw(reader.pose(f)) for f in reader.split["test"]]
     time_alternating([full, *variants], poses, args.repeats)
-    rows = table([full, *variants], full, offpath is not None)
+    rows = table([full, *variants], full, control, offpath is not None)
     print("\n".join(rows))
     plot(variants, full, args.figure)
 
@@ -214,7 +219,8 @@ def main() -> None:
     text = [
         "## Pareto front: old ranking, benefit-cost ranking, each with and without fine-tuning", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
-        f"--finetune {args.finetune} --cell {args.cell:g} --per-cell {args.per_cell} "
+        f"--finetune {args.finetune} --budgets {','.join(f'{b:g}' for b in args.budgets)} "
+        f"--cell {args.cell:g} --per-cell {args.per_cell} "
         f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats} --offpath-stride {args.offpath_stride}"
         + (f" --measurement {args.measurement}" if args.measurement else "") + "`", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, torch "
@@ -232,7 +238,8 @@ def main() -> None:
         f"{measure_cpu:.0f} s CPU, once for all budgets. Fine-tuning: {args.finetune} steps per budget "
         f"(median {statistics.median(tuned):.0f} s wall). The control row is the uncompacted scene fine-tuned the "
         "same way: what the extra steps alone give.", "",
-        f"Budgets (fixed in the script): {', '.join(f'{b:g}' for b in BUDGETS)} of the scene; no visibility grid; "
+        f"Budgets: {', '.join(f'{b:g}' for b in args.budgets)} of the scene"
+        f"{' (fixed in the script before the first run)' if args.budgets == BUDGETS else ''}; no visibility grid; "
         "latency is `LocalSim.render(pose)` (what `parksim serve` runs), four cameras, no BEV, at the test poses, "
         f"median of {args.repeats} repeats after a warm-up, every variant timed alternately in one process; "
         "wall and process-CPU ms per render.", "", *rows, "",

@@ -189,10 +189,11 @@ def test_cli_writes_a_compact_bundle(garage, tmp_path, capsys):
     path = garage[0]
     out = tmp_path / "small"
     argv = ["compact", str(path), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5",
-            "--cell-budget", "0.5", "--ranking", "weight", "--finetune", "0", "--quiet"]
+            "--cell-budget", "0.5", "--finetune", "0", "--quiet"]   # the default ranking needs no dataset
     assert main(argv) == 0
     assert "visibility cells" in capsys.readouterr().out
     small = bundle_io.load(out)
+    assert small.meta["compaction"]["ranking"] == "weight"
     assert len(small.scene) == round(0.5 * len(bundle_io.load(path).scene)) and small.visibility is not None
     assert small.poses == garage[1].poses is not None   # refined poses travel with the compact bundle
     assert main(argv) == 2
@@ -287,7 +288,7 @@ def test_cli_fine_tunes_with_the_dataset_and_needs_one(garage, tiny_data, tmp_pa
     (src / "poses.json").unlink()
     out = tmp_path / "tuned"
     argv = ["compact", str(src), "-o", str(out), "--cell", "8", "--poses-per-cell", "1", "--budget", "0.5",
-            "--no-visibility", "--finetune", "3", "--quiet"]
+            "--no-visibility", "--finetune", "3", "--ranking", "benefit-cost", "--quiet"]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "records no dataset" in err and len(err.strip().splitlines()) == 1 and not out.exists()
