@@ -17,6 +17,7 @@ from typing import Any
 import ray
 from fastapi import FastAPI
 from ray import serve
+from ray.exceptions import RayError
 from ray.serve.deployment import Application
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -110,7 +111,11 @@ def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, p
     except ConnectionError as e:
         raise ValueError(f"cannot join the Ray cluster at {address}: {str(e).splitlines()[0]}") from None
     try:
-        serve.start(http_options={"host": host, "port": port}, logging_config=QUIET)
+        try:
+            serve.start(http_options={"host": host, "port": port}, logging_config=QUIET)
+        except (RayError, TimeoutError) as e:   # seen with 2 cores and 3 busy processes: the proxy was killed
+            raise ValueError(f"Ray Serve's HTTP proxy did not start ({type(e).__name__}); is the machine "
+                             "overloaded? Ray's session logs say more") from None
         try:
             serve.run(application(scenes, settings, scaling), name=APP_NAME, route_prefix="/", logging_config=QUIET)
         except RuntimeError:

@@ -3,6 +3,7 @@ status and detail), follows --replicas, stops on Ctrl-C; without Ray the command
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -48,20 +49,21 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def served(cluster, bundle_dir, tmp_path_factory):
-    """``parksim serve --ray`` joined to the module's cluster with two replicas and an API key; (process, URL)."""
+    """``parksim serve --ray`` joined to the module's cluster with two replicas and an API key; (process, URL, its
+    stderr log). Python's fault handler is on in it, so SIGABRT writes every thread's stack to that log."""
     port = free_port()
     log = tmp_path_factory.mktemp("log") / "serve.err"
     with log.open("w") as err:
         proc = subprocess.Popen([PARKSIM, "serve", "--ray", "--address", cluster, "--replicas", "2", "--api-key", KEY,
                                  "--scenes", str(bundle_dir.parent), "--port", str(port)],
-                                stdout=subprocess.DEVNULL, stderr=err)
+                                stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 240
         while not _answers(base):
             assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.5)
-        yield proc, base
+        yield proc, base, log
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -137,9 +139,15 @@ def test_replicas_follow_the_flag(served):
 
 
 def test_ctrl_c_takes_the_deployment_down(served):
-    proc, base = served
+    proc, base, log = served
     proc.send_signal(signal.SIGINT)
-    assert proc.wait(120) == 0
+    try:
+        assert proc.wait(120) == 0
+    except subprocess.TimeoutExpired:   # seen twice in full-suite runs, never alone: keep the evidence
+        proc.send_signal(signal.SIGABRT)
+        proc.wait(30)
+        pytest.fail("parksim serve --ray still ran 120 s after Ctrl-C; its stderr and stacks:\n"
+                    + log.read_text()[-6000:])
     assert "parksim" not in serve.status().applications
     assert not _answers(base)
 
