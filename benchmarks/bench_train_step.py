@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -47,21 +48,25 @@ def resumed_trainer(run: Path, dataset: Path, scratch: Path) -> Any:
 
 
 def measure(run: Path, dataset: Path, iterations: int, warmup: int) -> dict[str, float | int | str]:
-    """Time ``iterations`` steps after ``warmup`` untimed ones (kernel compilation, allocator warm-up)."""
+    """Time ``iterations`` steps after ``warmup`` untimed ones (kernel compilation, allocator warm-up); also
+    count the minor page faults per step (fresh pages the allocator maps)."""
     import parksim
 
     with tempfile.TemporaryDirectory() as scratch:
         trainer = resumed_trainer(run, dataset, Path(scratch))
-        walls, cpus = [], []
+        walls, cpus, faults = [], [], []
         for i in range(warmup + iterations):
             wall, cpu = time.perf_counter(), time.process_time()
+            minflt = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             trainer.iteration()
             if i >= warmup:
                 walls.append(time.perf_counter() - wall)
                 cpus.append(time.process_time() - cpu)
+                faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - minflt)
     gaussians = len(trainer.params) if trainer.params is not None else 0
     return {"package": str(Path(parksim.__file__).parent.parent), "gaussians": gaussians,
-            "wall_ms": 1000 * statistics.median(walls), "cpu_ms": 1000 * statistics.median(cpus)}
+            "wall_ms": 1000 * statistics.median(walls), "cpu_ms": 1000 * statistics.median(cpus),
+            "faults": statistics.median(faults)}
 
 
 def profile(run: Path, dataset: Path, steps: int, warmup: int) -> str:
@@ -114,9 +119,11 @@ def main() -> None:
     print(f"- command: `.venv/bin/python benchmarks/bench_train_step.py {' '.join(sys.argv[1:])}`")
     print(f"- {time.strftime('%Y-%m-%dT%H:%M:%S')}, {os.cpu_count()} cores, load average "
           f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the end\n")
-    print("| round | package | Gaussians | median wall ms | median CPU ms |\n| ---: | --- | ---: | ---: | ---: |")
+    print("| round | package | Gaussians | median wall ms | median CPU ms | minor page faults per step |\n"
+          "| ---: | --- | ---: | ---: | ---: | ---: |")
     for round_, r in rows:
-        print(f"| {round_ + 1} | `{r['package']}` | {r['gaussians']} | {r['wall_ms']:.0f} | {r['cpu_ms']:.0f} |")
+        print(f"| {round_ + 1} | `{r['package']}` | {r['gaussians']} | {r['wall_ms']:.0f} | {r['cpu_ms']:.0f} | "
+              f"{r['faults']:.0f} |")
 
 
 if __name__ == "__main__":

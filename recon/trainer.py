@@ -32,6 +32,7 @@ from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
 from .detectors import DMPRDetector
 from .evaluate import evaluate_views
+from .heap import keep_freed_memory
 from .init import initial_scene
 from .losses import photometric_loss, sum_terms
 from .masks import scene_mask
@@ -82,6 +83,7 @@ class Trainer:
     def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
                  log: Callable[[str], None] = print, detector: DMPRDetector | None = None) -> None:
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
+        keep_freed_memory()   # every step reuses its large buffers' pages (recon/heap.py)
         self.rig = reader.rig
         self.generator = torch.Generator().manual_seed(config.run.seed)
         self.views = [(f, c) for f in reader.split["train"] for c in self.rig.names]
