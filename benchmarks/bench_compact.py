@@ -3,7 +3,7 @@
 For each budget of ``BUDGETS`` (fixed before any run) three compact scenes are made from one measurement
 (``parksim.compact.measure_bundle``): the old ranking (largest blending weight), the new one (training-view
 summed weight per Gaussian-pixel pair) and the new one fine-tuned for ``--finetune`` steps
-(``recon.finetune``). No visibility grid (the global budget alone), SH tolerance ``--sh-tolerance``.
+(``recon.finetune``). No visibility grid unless ``--cell-budget`` is below 1, SH tolerance ``--sh-tolerance``.
 Each is served as ``parksim serve`` does it, by ``LocalSim``: latency is a four-camera render (no BEV, scale 1)
 at the dataset's test poses, all variants and the uncompacted bundle timed alternately in one process
 (median over repeats after a warm-up; wall and process CPU). PSNR is ``recon.evaluate``'s (each view through
@@ -168,6 +168,9 @@ def main() -> None:
                         help="comma-separated fractions of the scene (default: the fixed BUDGETS); say in the "
                              "results when a run's budgets were chosen after seeing another run")
     parser.add_argument("--cell", type=float, default=4.0)
+    parser.add_argument("--cell-budget", type=float, default=1.0,
+                        help="below 1: every compact variant also serves per-cell visibility lists of this fraction "
+                             "of its kept Gaussians (parksim compact --cell-budget); 1: no visibility grid")
     parser.add_argument("--per-cell", type=int, default=8)
     parser.add_argument("--sh-tolerance", type=float, default=0.01)
     parser.add_argument("--repeats", type=int, default=5)
@@ -182,7 +185,8 @@ def main() -> None:
     load_start = os.getloadavg()
     full_bundle, reader = bundle_io.load(args.bundle), DatasetReader(args.dataset)
     offpath = DatasetReader(args.dataset / "offpath") if (args.dataset / "offpath").is_dir() else None
-    base = CompactOptions(cell=args.cell, per_cell=args.per_cell, sh_tolerance=args.sh_tolerance, visibility=False,
+    base = CompactOptions(cell=args.cell, per_cell=args.per_cell, sh_tolerance=args.sh_tolerance,
+                          visibility=args.cell_budget < 1.0, cell_budget=args.cell_budget,
                           ranking="benefit-cost")
     if args.measurement is not None and args.measurement.is_file():
         measured, measure_s, measure_cpu = torch.load(args.measurement, weights_only=False)
@@ -220,7 +224,7 @@ def main() -> None:
         "## Pareto front: old ranking, benefit-cost ranking, each with and without fine-tuning", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
         f"--finetune {args.finetune} --budgets {','.join(f'{b:g}' for b in args.budgets)} "
-        f"--cell {args.cell:g} --per-cell {args.per_cell} "
+        f"--cell {args.cell:g} --cell-budget {args.cell_budget:g} --per-cell {args.per_cell} "
         f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats} --offpath-stride {args.offpath_stride}"
         + (f" --measurement {args.measurement}" if args.measurement else "") + "`", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, torch "
@@ -239,7 +243,9 @@ def main() -> None:
         f"(median {statistics.median(tuned):.0f} s wall). The control row is the uncompacted scene fine-tuned the "
         "same way: what the extra steps alone give.", "",
         f"Budgets: {', '.join(f'{b:g}' for b in args.budgets)} of the scene"
-        f"{' (fixed in the script before the first run)' if args.budgets == BUDGETS else ''}; no visibility grid; "
+        f"{' (fixed in the script before the first run)' if args.budgets == BUDGETS else ''}; "
+        + (f"per-cell visibility lists of {args.cell_budget:g} of the kept Gaussians (full scene and control: "
+           "none); " if args.cell_budget < 1.0 else "no visibility grid; ") +
         "latency is `LocalSim.render(pose)` (what `parksim serve` runs), four cameras, no BEV, at the test poses, "
         f"median of {args.repeats} repeats after a warm-up, every variant timed alternately in one process; "
         "wall and process-CPU ms per render.", "", *rows, "",
