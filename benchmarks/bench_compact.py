@@ -60,11 +60,13 @@ class Variant:
 
 
 def mean_psnr(sim: LocalSim, reader: DatasetReader, frames: list[int]) -> float:
-    """Mean PSNR of ``frames`` x every camera, rendered with the bundle's scene and camera response."""
+    """Mean PSNR of ``frames`` x every camera as served: the Gaussians ``sim`` renders at each frame's pose (its
+    visibility cell's when the bundle has a grid), through the bundle's camera response."""
     response = CameraResponse(reader.rig, 0.0)
     response.load_dict(sim.bundle.meta.get("camera_response", {}))
-    views = [(f, c) for f in frames for c in reader.rig.names]
-    return evaluate_views(sim.bundle.scene, reader, views, response, slots=False).mean("psnr") or 0.0
+    return statistics.fmean(
+        evaluate_views(sim.scene_at(xy_yaw(reader.pose(f))), reader, [(f, c) for c in reader.rig.names], response,
+                       slots=False).mean("psnr") or 0.0 for f in frames)   # every frame has every camera
 
 
 def xy_yaw(pose: torch.Tensor) -> list[float]:
