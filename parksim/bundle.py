@@ -78,6 +78,12 @@ class Bundle:
             raise BundleError(f"bundle scene: {e}") from None
 
     @property
+    def projection(self) -> str:
+        """The projection the Gaussians were trained with, and so must be rendered with (``run.projection``: "ut"
+        or "ewa"; bundles from before it: "ut"). An EWA-trained scene rendered with UT scored 12 dB lower."""
+        return str(self.meta.get("projection", "ut"))
+
+    @property
     def bev(self) -> BEVSpec:
         return self.rig.bev
 

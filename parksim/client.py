@@ -217,7 +217,8 @@ class LocalSim:
         frame = Frame()
         start = time.perf_counter()
         if needed:
-            res = render(self.scene_at(pose), self.bundle.rig, list(pose), cameras=needed, scale=scale)
+            res = render(self.scene_at(pose), self.bundle.rig, list(pose), cameras=needed, scale=scale,
+                         method=self.bundle.projection)
             frame.images = {n: to_uint8(res.images[n]) for n in names}
             if depth:
                 frame.depth = {n: res.depth[n].detach().numpy().astype(np.float32) for n in names}

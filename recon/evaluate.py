@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
 from collections.abc import Callable, Mapping, Sequence
@@ -27,7 +28,7 @@ from .pose_refine import POSES_KEY, PoseCorrections, align_poses
 if TYPE_CHECKING:
     from parksim.bundle import Bundle
 
-__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize", "group_means", "projection_of"]
+__all__ = ["render_view", "evaluate_views", "EvalReport", "summarize", "group_means"]
 
 Response = Callable[[Tensor, str], Tensor]
 ViewPose = Callable[[str, int], Tensor]
@@ -39,7 +40,7 @@ def render_view(scene: GaussianScene, reader: DatasetReader, frame: int, camera:
     """One camera of one frame, through the camera's learned response when given (HxWx3, unclamped).
 
     ``rig`` and ``view_pose`` default to the dataset's; pose refinement passes its refined rig and poses;
-    ``method`` is the projection the scene was trained with (``projection_of(bundle)``)."""
+    ``method`` is the projection the scene was trained with (``bundle.projection``)."""
     pose = (view_pose or reader.view_pose)(camera, frame)
     image = render(scene, rig or reader.rig, pose, cameras=[camera], backend=backend, method=method).images[camera]
     return response(image, camera) if response is not None else image
@@ -111,11 +112,6 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
     return report
 
 
-def projection_of(bundle: Bundle) -> str:
-    """The projection a bundle's Gaussians were trained with (``run.projection``; bundles before it: UT)."""
-    return str(bundle.meta.get("projection", "ut"))
-
-
 def _aligned_poses(bundle: Bundle, reader: DatasetReader, views: list[tuple[int, str]], response: Response,
                    backend: str, steps: int | None) -> tuple[Rig, PoseCorrections | None, str]:
     """The rig and test poses to score a bundle at, and a note saying how: a pose-refined bundle renders with its
@@ -139,7 +135,7 @@ def _score_split(bundle: Bundle, reader: DatasetReader, response: Response, back
     rig, aligned, alignment = _aligned_poses(bundle, reader, views, response, backend, align_steps)
     view_pose = aligned.view_pose if aligned is not None else None
     report = evaluate_views(bundle.scene, reader, views, response, backend, side_by_side=side_by_side, rig=rig,
-                            view_pose=view_pose, method=projection_of(bundle))
+                            view_pose=view_pose, method=bundle.projection)
     return report, rig, aligned, alignment
 
 
@@ -176,8 +172,12 @@ def _offpath(bundle: Bundle, split: Path, response: Response, backend: str, alig
 
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
                     lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None,
-                    align_steps: int | None = None, offpath: bool = True) -> dict[str, Any]:
+                    align_steps: int | None = None, offpath: bool = True,
+                    projection: str | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
+
+    Views are rendered with the projection the bundle was trained with, or ``projection`` ("ut": as the server
+    renders every bundle); eval.json's ``projection`` says which.
 
     A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off);
     eval.json then holds them as ``aligned_test_poses`` (poses.json schema). With ``offpath`` and an off-path split
@@ -189,6 +189,8 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     from .response import CameraResponse
 
     bundle, reader = load(scene_dir), DatasetReader(data_dir)
+    if projection is not None:
+        bundle = dataclasses.replace(bundle, meta={**bundle.meta, "projection": projection})
     response = CameraResponse(reader.rig, 0.0)
     response.load_dict(bundle.meta.get("camera_response", {}))
     frames = reader.split["test"]
@@ -202,11 +204,12 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
         masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}
         for row in report.views:
             pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend, rig,
-                               view_pose, projection_of(bundle)).clamp(0, 1)
+                               view_pose, bundle.projection).clamp(0, 1)
             row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]), masks[row["camera"]])
     summary = summarize(report, reader.rig.names, frames)
     summary["overall"]["lpips"] = report.mean("lpips")
     result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,
+              "projection": bundle.projection,
               "lpips": "computed" if lpips is not None else "not computed (no LPIPS weights given)",
               "pose_alignment": alignment, **summary, "views": report.views}
     if aligned is not None:

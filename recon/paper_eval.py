@@ -27,7 +27,7 @@ from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
 from .detectors import DecodeOptions, Detections, DMPRDetector
 from .detectors.protocols import ParkSimProtocol, Protocol
-from .evaluate import evaluate_views, group_means, offpath_split, projection_of
+from .evaluate import evaluate_views, group_means, offpath_split
 from .paper_tables import DETECTOR_TITLES, tables_markdown
 from .reconstruct import CONFIG_FILE
 from .response import CameraResponse
@@ -111,7 +111,7 @@ class _Split:
         response.load_dict(bundle.meta.get("camera_response", {}))
         frames = [f for fs in self.groups.values() for f in fs]
         views = [(f, c) for f in frames for c in reader.rig.names]
-        method = projection_of(bundle)
+        method = bundle.projection
         quality = group_means(evaluate_views(bundle.scene, reader, views, response, backend, method=method),
                               self.groups)
         bevs = rendered_bevs(bundle.scene, reader, frames, response, backend, method)

@@ -1,6 +1,7 @@
 """The ``parksim`` command line: every subcommand explains itself, bad input is one clear line, render works."""
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -105,6 +106,23 @@ def test_eval_report_appears_whole_and_a_rerun_replaces_it(bundle, tmp_path, cap
     assert not (out / "renders" / "stale.png").exists() and len(list((out / "renders").iterdir())) == 4
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     assert "report: " in capsys.readouterr().out
+
+
+def test_eval_projection_override_is_recorded_and_changes_the_render(bundle, tmp_path, capsys):
+    """--projection renders with another projection than the trained one (what the server does to EWA-trained
+    scenes: it renders every scene with UT); eval.json says which. Several scenes refuse it in one line."""
+    data = tmp_path / "data"
+    assert main(["synth", "tiny", "-o", str(data), "--frames", "2", "--points", "300", "--quiet"]) == 0
+    reports = {}
+    for name, extra in (("trained", []), ("ewa", ["--projection", "ewa"])):
+        assert main(["eval", str(bundle), str(data), "-o", str(tmp_path / name), *extra]) == 0
+        reports[name] = json.loads((tmp_path / name / "eval.json").read_text())
+    assert reports["trained"]["projection"] == "ut" and reports["ewa"]["projection"] == "ewa"
+    assert reports["trained"]["overall"]["psnr"] != reports["ewa"]["overall"]["psnr"]
+    capsys.readouterr()
+    assert main(["eval", str(bundle), str(bundle), str(data), "-o", str(tmp_path / "both"), "--projection", "ut"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--projection applies to one SCENE" in err
 
 
 def _umask() -> int:

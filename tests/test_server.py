@@ -266,3 +266,20 @@ def test_remote_client_reports_server_errors(app):
         with pytest.raises(ValueError, match="422.*x must be in"):
             remote.render((900.0, 0.0, 0.0), ["front"], scale=0.25)
         assert httpx.get(f"{url}/healthz").status_code == 200
+
+
+def test_a_scene_is_served_with_the_projection_it_was_trained_with(bundle_dir, tmp_path):
+    """An EWA-trained bundle (bundle.json "projection": "ewa") renders through EWA, not the UT default: the same
+    pixels as ``render(..., method="ewa")``, and not UT's (an EWA scene served through UT scored 12 dB lower)."""
+    from parksim.bundle import load, save
+    from parksim.imageio import to_uint8
+    from parksim.render import render
+
+    ewa = load(bundle_dir)
+    ewa.meta["projection"] = "ewa"
+    save(tmp_path / "ewa", ewa)
+    sim, pose = LocalSim(load(tmp_path / "ewa"), "ewa"), [12.0, 0.3, 0.2]
+    served = sim.render(pose, ["front"], scale=0.25).images["front"]
+    for method, same in (("ewa", True), ("ut", False)):
+        want = to_uint8(render(ewa.scene, ewa.rig, pose, cameras=["front"], scale=0.25, method=method).images["front"])
+        assert np.array_equal(served, want) == same, method

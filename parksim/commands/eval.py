@@ -56,6 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="skip the off-path split (DATA/offpath/) even when the dataset has one")
     p.add_argument("--panel-frames", type=integer(0), default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
+    p.add_argument("--projection", choices=["ut", "ewa"],
+                   help="render with this projection instead of the one the scene was trained with (which is what "
+                        "`parksim serve` renders with); one SCENE without --detector only")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
     p.add_argument("--lpips-backbone", type=Path, help="torchvision AlexNet/VGG16 ImageNet state dict (.pth)")
     p.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 linear-head weights (alex.pth / vgg.pth)")
@@ -92,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
     out = args.output or args.scenes[0][0] / "eval"
     check_output_folder(out)
     if args.detector or len(args.scenes) > 1:
+        if args.projection is not None:
+            raise ValueError("--projection applies to one SCENE without --detector")
         return _tables(args, out)
     from recon.evaluate import evaluate_bundle
 
@@ -107,7 +112,8 @@ def run(args: argparse.Namespace) -> int:
     scene = args.scenes[0][0]
     result: dict = {}
     atomic_files(out, lambda tmp: result.update(evaluate_bundle(scene, args.data, tmp, args.backend, lpips,
-                                                                offpath=not args.no_offpath)))
+                                                                offpath=not args.no_offpath,
+                                                                projection=args.projection)))
     print((out / "eval.md").read_text(), end="")
     plot = f", off-path plot: {out}/offpath.png" if "offpath" in result else ""
     print(f"report: {out}/eval.json, side-by-sides: {out}/renders/{plot}")
