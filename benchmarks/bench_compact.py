@@ -1,14 +1,16 @@
 """Scene compaction's Pareto front on a trained bundle: four-camera serving render time against test PSNR.
 
-For each budget of ``BUDGETS`` (fixed before any run) three compact scenes are made from one measurement
-(``parksim.compact.measure_bundle``): the old ranking (largest blending weight), the new one (training-view
-summed weight per Gaussian-pixel pair) and the new one fine-tuned for ``--finetune`` steps
-(``recon.finetune``). No visibility grid unless ``--cell-budget`` is below 1, SH tolerance ``--sh-tolerance``.
+For each budget of ``BUDGETS`` (fixed before any run; ``--budgets`` for others) four compact scenes are made
+from one measurement (``parksim.compact.measure_bundle``): ranked by largest blending weight and by benefit-cost
+(training-view summed weight per Gaussian-pixel pair), each with and without ``--finetune`` steps
+(``recon.finetune``); the control is the whole scene fine-tuned the same way. No visibility grid unless
+``--cell-budget`` is below 1, SH tolerance ``--sh-tolerance``.
 Each is served as ``parksim serve`` does it, by ``LocalSim``: latency is a four-camera render (no BEV, scale 1)
 at the dataset's test poses, all variants and the uncompacted bundle timed alternately in one process
-(median over repeats after a warm-up; wall and process CPU). PSNR is ``recon.evaluate``'s (each view through
-the bundle's camera response, over the camera's scene mask) on the test frames and, when ``DATA/offpath``
-exists (``parksim offpath DATA``), on every off-path frame.
+(median over repeats after a warm-up; wall and process CPU). PSNR is ``recon.evaluate``'s on the Gaussians
+served at each pose (each view through the bundle's camera response, over the camera's scene mask) on the test
+frames and, when ``DATA/offpath`` exists (``parksim offpath DATA``), on every ``--offpath-stride``-th off-path
+frame.
 
     .venv/bin/python benchmarks/bench_compact.py --bundle scenes/s1_320 --dataset data/scene1_320 \
         --out benchmarks/RESULTS_compact.md --figure benchmarks/figures/compact_pareto.png

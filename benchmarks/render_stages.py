@@ -7,7 +7,6 @@ evaluated (16-pixel tile rows each ellipse reaches, per tile up to its last cont
 from __future__ import annotations
 
 import importlib
-import inspect
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -50,10 +49,7 @@ class _Frame:
         api, proj = mod["render.api"], mod["render.projection"]
         view = api._rig_view(rig, scale, tuple(rig.names))
         self.cams = [view.rig.cameras[n] for n in rig.names]
-        # packages before caa321b cache one CPU mask per camera and take no device
-        takes_device = "device" in inspect.signature(view.lens_mask).parameters
-        self.lenses = [(view.lens_mask(n, torch.device("cpu")) if takes_device else view.lens_mask(n)).numpy()
-                       for n in rig.names]
+        self.lenses = [view.lens_mask(n).numpy() for n in rig.names]
         T = mod["geometry"].as_pose(pose)
         self.T_cam_world = [mod["geometry"].invert_transform(T @ c.T_vehicle_camera) for c in self.cams]
         self.cfgs = [proj.fused_config(proj.UTParams(), proj.NEAR_M, proj.FAR_M,

@@ -176,8 +176,8 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
                     projection: str | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
 
-    Views are rendered with the projection the bundle was trained with, or ``projection`` ("ut": as the server
-    renders every bundle); eval.json's ``projection`` says which.
+    Views are rendered with the projection the bundle was trained with (``Bundle.projection``, as the server
+    renders it), or with ``projection`` to see what the other one gives; eval.json's ``projection`` says which.
 
     A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off);
     eval.json then holds them as ``aligned_test_poses`` (poses.json schema). With ``offpath`` and an off-path split

@@ -60,7 +60,7 @@ class _RigView:
     lens: dict[tuple[str, torch.device], Tensor] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def lens_mask(self, name: str, device: torch.device) -> Tensor:
+    def lens_mask(self, name: str, device: torch.device = torch.device("cpu")) -> Tensor:
         """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing), kept on
         ``device`` so that a GPU render does not copy it every call."""
         key = (name, device)
