@@ -3,8 +3,7 @@
 For each budget of ``BUDGETS`` (fixed before any run; ``--budgets`` for others) four compact scenes are made
 from one measurement (``parksim.compact.measure_bundle``): ranked by largest blending weight and by benefit-cost
 (training-view summed weight per Gaussian-pixel pair), each with and without ``--finetune`` steps
-(``recon.finetune``), and with ``--rounds`` above 1 the weight ranking fine-tuned in that many prune-and-tune rounds
-(the same steps in all); the control is the whole scene fine-tuned the same way. No visibility grid unless
+(``recon.finetune``); the control is the whole scene fine-tuned the same way. No visibility grid unless
 ``--cell-budget`` is below 1, SH tolerance ``--sh-tolerance``.
 Each is served as ``parksim serve`` does it, by ``LocalSim``: latency is a four-camera render (no BEV, scale 1)
 at the dataset's test poses, all variants and the uncompacted bundle timed alternately in one process
@@ -36,7 +35,7 @@ from parksim.client import LocalSim
 from parksim.compact import CompactOptions, Measurement, measure_bundle, reduce_bundle
 from parksim.data import DatasetReader
 from recon.evaluate import evaluate_views
-from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune, round_steps
+from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
 from recon.response import CameraResponse
 
 BUDGETS = (0.5, 0.35, 0.25, 0.15)
@@ -44,13 +43,6 @@ BUDGETS = (0.5, 0.35, 0.25, 0.15)
 SERIES = (("weight", False), ("benefit-cost", False), ("benefit-cost", True), ("weight", True))
 """(ranking, fine-tuned) per budget: the old ranking, the new one, the new one fine-tuned, and the old one
 fine-tuned (the control that tells the ranking's share from the fine-tuning's)."""
-ROUNDS_RANKING = "weight"
-"""The ranking of the ``--rounds`` series (``parksim compact``'s default)."""
-
-
-def series_of(rounds: int) -> list[tuple[str, bool, int]]:
-    """(ranking, fine-tuned, rounds) of every series: ``SERIES`` in one round, then the ``rounds`` series if above 1."""
-    return [(ranking, tuned, 1) for ranking, tuned in SERIES] + ([(ROUNDS_RANKING, True, rounds)] if rounds > 1 else [])
 
 
 @dataclasses.dataclass
@@ -62,7 +54,6 @@ class Variant:
     ranking: str | None = None
     budget: float = 1.0
     tuned: bool = False
-    rounds: int = 1
     psnr: float = 0.0
     offpath_psnr: float | None = None
     make_s: float = 0.0
@@ -101,20 +92,17 @@ def time_alternating(variants: list[Variant], poses: list[list[float]], repeats:
 
 
 def make_variants(full: bundle_io.Bundle, measured: Measurement, base: CompactOptions, reader: DatasetReader,
-                  bundle_dir: Path, steps: int, budgets: tuple[float, ...], rounds: int) -> list[Variant]:
-    """One compact scene per budget and series (and the ``rounds`` series when above 1), fine-tuning where the
-    series says so (timed)."""
+                  bundle_dir: Path, steps: int, budgets: tuple[float, ...]) -> list[Variant]:
+    """One compact scene per budget and series, fine-tuning where the series says so (timed)."""
     config, out = bundle_config(bundle_dir, full.meta), []
     for budget in budgets:
-        for ranking, tuned, n_rounds in series_of(rounds):
-            opts = dataclasses.replace(base, budget=budget, ranking=ranking, rounds=n_rounds)
-            shares = round_steps(steps, n_rounds)
+        for ranking, tuned in SERIES:
+            opts = dataclasses.replace(base, budget=budget, ranking=ranking)
             start = time.perf_counter()
-            tune = (lambda b, k: finetune(b, reader, shares[k], config, progress=True)) if tuned else None
-            compact = reduce_bundle(full, measured, opts, tune, reader, progress=True)
-            name = (f"{ranking}{' + fine-tune' if tuned else ''}{f', {n_rounds} rounds' if n_rounds > 1 else ''}, "
-                    f"budget {budget:g}")
-            out.append(Variant(name, LocalSim(compact, name), ranking, budget, tuned, n_rounds,
+            tune = (lambda b: finetune(b, reader, steps, config, progress=True)) if tuned else None
+            compact = reduce_bundle(full, measured, opts, tune)
+            name = f"{ranking}{' + fine-tune' if tuned else ''}, budget {budget:g}"
+            out.append(Variant(name, LocalSim(compact, name), ranking, budget, tuned,
                                make_s=time.perf_counter() - start))
             print(f"{name}: {len(compact.scene)} Gaussians in {out[-1].make_s:.0f} s", flush=True)
     return out
@@ -150,11 +138,10 @@ def plot(variants: list[Variant], full: Variant, path: Path) -> None:
     controls = [v for v in variants if v.ranking is None]
     ax.plot([statistics.median(v.wall_ms) for v in controls], [v.psnr for v in controls], "kP", markersize=9,
             label="full scene + fine-tune (control), test")
-    colours = ("tab:grey", "tab:blue", "tab:green", "tab:orange", "tab:purple")
-    for (ranking, tuned, n_rounds), colour in zip(series_of(max(v.rounds for v in variants)), colours):
-        rows = [v for v in variants if (v.ranking, v.tuned, v.rounds) == (ranking, tuned, n_rounds)]
+    for (ranking, tuned), colour in zip(SERIES, ("tab:grey", "tab:blue", "tab:green", "tab:orange")):
+        rows = [v for v in variants if v.ranking == ranking and v.tuned == tuned]
         ms = [statistics.median(v.wall_ms) for v in rows]
-        label = f"{ranking}{' + fine-tune' if tuned else ''}{f', {n_rounds} rounds' if n_rounds > 1 else ''}"
+        label = f"{ranking}{' + fine-tune' if tuned else ''}"
         ax.plot(ms, [v.psnr for v in rows], "o-", color=colour, label=f"{label}, test")
         if full.offpath_psnr is not None:
             ax.plot(ms, [v.offpath_psnr or 0.0 for v in rows], "s--", color=colour, alpha=0.6,
@@ -184,9 +171,6 @@ def main() -> None:
     parser.add_argument("--budgets", type=lambda t: tuple(float(x) for x in t.split(",")), default=BUDGETS,
                         help="comma-separated fractions of the scene (default: the fixed BUDGETS); say in the "
                              "results when a run's budgets were chosen after seeing another run")
-    parser.add_argument("--rounds", type=int, default=1,
-                        help="above 1: also the weight ranking fine-tuned in this many prune-and-tune rounds "
-                             "(parksim compact --rounds), --finetune steps split over them")
     parser.add_argument("--cell", type=float, default=4.0)
     parser.add_argument("--cell-budget", type=float, default=1.0,
                         help="below 1: every compact variant also serves per-cell visibility lists of this fraction "
@@ -224,7 +208,7 @@ def main() -> None:
     control = Variant("full + fine-tune (control)", LocalSim(tuned_full, "full-tuned"), tuned=True,
                       make_s=time.perf_counter() - start)
     variants = [control, *make_variants(full_bundle, measured, base, reader, args.bundle, args.finetune,
-                                        args.budgets, args.rounds)]
+                                        args.budgets)]
     for v in [full, *variants]:
         v.psnr = mean_psnr(v.sim, reader, reader.split["test"])
         if offpath is not None:
@@ -244,8 +228,7 @@ def main() -> None:
         "## Pareto front: old ranking, benefit-cost ranking, each with and without fine-tuning", "",
         f"Command: `.venv/bin/python benchmarks/bench_compact.py --bundle {args.bundle} --dataset {args.dataset} "
         f"--finetune {args.finetune} --budgets {','.join(f'{b:g}' for b in args.budgets)} "
-        + (f"--rounds {args.rounds} " if args.rounds > 1 else "")
-        + f"--cell {args.cell:g} --cell-budget {args.cell_budget:g} --per-cell {args.per_cell} "
+        f"--cell {args.cell:g} --cell-budget {args.cell_budget:g} --per-cell {args.per_cell} "
         f"--sh-tolerance {args.sh_tolerance:g} --repeats {args.repeats} --offpath-stride {args.offpath_stride}"
         + (f" --measurement {args.measurement}" if args.measurement else "") + "`", "",
         f"Machine: {cpu_model()}, {os.cpu_count()} cores, numba threads {numba.get_num_threads()}, torch "
@@ -261,9 +244,7 @@ def main() -> None:
         f"of {args.cell:g} m ({args.per_cell} per cell), plus the benefit over "
         f"{len(reader.split['train']) * len(reader.rig.names)} training views: {measure_s:.0f} s wall / "
         f"{measure_cpu:.0f} s CPU, once for all budgets. Fine-tuning: {args.finetune} steps per budget "
-        + (f"(the {args.rounds}-round series: {' + '.join(map(str, round_steps(args.finetune, args.rounds)))}, "
-           "re-measured at the same poses after each round but the last) " if args.rounds > 1 else "")
-        + f"(median {statistics.median(tuned):.0f} s wall). The control row is the uncompacted scene fine-tuned the "
+        f"(median {statistics.median(tuned):.0f} s wall). The control row is the uncompacted scene fine-tuned the "
         "same way: what the extra steps alone give.", "",
         f"Budgets: {', '.join(f'{b:g}' for b in args.budgets)} of the scene"
         f"{' (fixed in the script before the first run)' if args.budgets == BUDGETS else ''}; "

@@ -20,19 +20,13 @@ from parksim.data import DatasetReader
 from .config import TrainConfig, load_config
 from .trainer import Trainer
 
-__all__ = ["FINETUNE_ITERATIONS", "LR_SCALE", "bundle_config", "finetune_config", "finetune", "round_steps"]
+__all__ = ["FINETUNE_ITERATIONS", "LR_SCALE", "bundle_config", "finetune_config", "finetune"]
 
 FINETUNE_ITERATIONS = 300
 """Default steps (one view each): about one pass over a 90-frame, four-camera training set; chosen before any
 result was seen."""
 LR_SCALE = 0.2
 """Learning rates of everything but the positions, relative to the training run's."""
-
-
-def round_steps(total: int, rounds: int) -> list[int]:
-    """``total`` fine-tuning steps split over ``rounds`` prune-and-tune rounds as evenly as whole steps allow
-    (earlier rounds take the remainder), so that more rounds cost no more training than one."""
-    return [total // rounds + (k < total % rounds) for k in range(rounds)]
 
 
 def bundle_config(directory: Path, meta: dict) -> TrainConfig:

@@ -17,7 +17,6 @@ from parksim.compact import (
     measure_bundle,
     pose_weights,
     reduce_bundle,
-    round_budgets,
     select,
     summed_weights,
 )
@@ -297,52 +296,6 @@ def test_cli_fine_tunes_with_the_dataset_and_needs_one(garage, tiny_data, tmp_pa
     assert "fine-tuned 3 steps" in capsys.readouterr().out
     meta = bundle_io.load(out).meta
     assert meta["finetune"]["iterations"] == 3 and meta["compaction"]["ranking"] == "benefit-cost"
-    # two rounds share the 3 steps (2 + 1) and re-measure once
-    assert main([*argv, "--dataset", str(tiny_data), "--rounds", "2", "--overwrite"]) == 0
-    printed = capsys.readouterr().out
-    assert "fine-tuned 3 steps" in printed and "2 rounds kept" in printed
-    report = bundle_io.load(out).meta["compaction"]
-    assert [r["iterations"] for r in report["finetune_rounds"]] == [2, 1] and len(report["round_gaussians"]) == 2
-
-
-def test_rounds_rank_again_on_the_tuned_scene(garage):
-    """Round two ranks on the tuned scene re-measured: Gaussians that round one's tuning hid go before any other,
-    where one round keeps them (their measured weight was high)."""
-    _, b, _, _, by_benefit = garage
-    n = len(b.scene)
-    options = dataclasses.replace(OPTIONS, ranking="weight", budget=0.25, visibility=False)
-    measured = measure_bundle(b, options)
-    assert round_budgets(options, n) == [0.25]
-    assert round_budgets(dataclasses.replace(options, rounds=2), n) == pytest.approx([0.5, 0.25])
-    assert round_budgets(dataclasses.replace(options, budget=151.0, rounds=2), n) == pytest.approx([0.5, 151.0])
-    hidden: list[torch.Tensor] = []
-    calls: list[tuple[int, int]] = []
-
-    def hide_the_most_visible(bundle: bundle_io.Bundle, k: int) -> bundle_io.Bundle:
-        calls.append((k, len(bundle.scene)))
-        if k:
-            return bundle
-        s = bundle.scene
-        top = torch.argsort(pose_weights(s, b.rig, measured.grid.poses[0].tolist()), descending=True)[:20]
-        hidden.append(s.means[top])
-        logits = s.opacity_logits.clone()
-        logits[top] = -30.0   # alpha far below 1/255: drawn nowhere
-        scene = GaussianScene(s.means, s.quats, s.log_scales, logits, s.sh, s.sh_degree)
-        return bundle_io.Bundle(scene, bundle.rig, bundle.map, bundle.meta, None, bundle.poses)
-
-    def survivors(compact: bundle_io.Bundle) -> int:
-        return int(torch.isin(compact.scene.means, hidden[-1]).all(dim=1).sum())
-
-    one = reduce_bundle(b, measured, options, hide_the_most_visible)
-    assert calls == [(0, 151)] and survivors(one) == 20
-    calls.clear()
-    two = reduce_bundle(b, measured, dataclasses.replace(options, rounds=2), hide_the_most_visible)
-    assert calls == [(0, 302), (1, 151)] and survivors(two) == 0 and len(two.scene) == 151
-    assert two.meta["compaction"]["round_gaussians"] == [302, 151] and two.meta["compaction"]["rounds"] == 2
-    with pytest.raises(ValueError, match="needs the training dataset"):
-        reduce_bundle(b, by_benefit, dataclasses.replace(options, ranking="benefit-cost", rounds=2))
-    with pytest.raises(ValueError, match="rounds must be at least 1"):
-        dataclasses.replace(options, rounds=0)
 
 
 def test_finetuning_renders_at_the_full_sh_degree_from_its_first_step():

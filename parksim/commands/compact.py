@@ -40,10 +40,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--finetune", type=integer(0), default=None, metavar="N",
                    help="photometric steps on the bundle's training views after pruning, Gaussian count fixed "
                         "(default 300, recon.finetune.FINETUNE_ITERATIONS; 0: none, no dataset needed)")
-    p.add_argument("--rounds", type=integer(1), default=1,
-                   help="prune and fine-tune in this many rounds: round k keeps budget^(k/rounds) of the scene, "
-                        "re-measured after each fine-tuning, which gets an equal share of --finetune steps "
-                        "(2 rounds re-measure once: about a minute per 100k Gaussians and 500 poses)")
     p.add_argument("--dataset", type=Path,
                    help="the training dataset folder (default: the one bundle.json records); read by the "
                         "benefit-cost ranking and --finetune")
@@ -68,7 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Check the arguments, compact, write OUTPUT atomically and print a summary."""
-    from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune, round_steps
+    from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
 
     from ..bundle import load, save
     from ..compact import CompactOptions, compact_bundle
@@ -78,15 +74,13 @@ def run(args: argparse.Namespace) -> int:
 
     check_output_folder(args.output, overwrite=args.overwrite)
     options = CompactOptions(args.budget, args.cell_budget, args.min_weight, args.sh_tolerance, args.cell,
-                             args.poses_per_cell, args.margin, args.seed, not args.no_visibility, args.ranking,
-                             args.rounds)
+                             args.poses_per_cell, args.margin, args.seed, not args.no_visibility, args.ranking)
     steps = FINETUNE_ITERATIONS if args.finetune is None else args.finetune
     bundle = load(args.bundle)
     garage_extent(bundle.map)   # a bundle that cannot be compacted says so before the dataset is looked for
     reader = _dataset(args.dataset, bundle.meta) if steps or args.ranking == "benefit-cost" else None
     config = bundle_config(args.bundle, bundle.meta)
-    shares = round_steps(steps, args.rounds)
-    tune = ((lambda b, k: finetune(b, reader, shares[k], config, progress=not args.quiet))
+    tune = ((lambda b: finetune(b, reader, steps, config, progress=not args.quiet))
             if steps and reader is not None else None)
     compact = compact_bundle(bundle, options, progress=not args.quiet, reader=reader, tune=tune)
     with atomic_directory(args.output) as tmp:
@@ -94,11 +88,9 @@ def run(args: argparse.Namespace) -> int:
     r = compact.meta["compaction"]
     cells = (f", {r['cells']} visibility cells of {r['cell_gaussians_mean']:.0f} Gaussians on average"
              if "cells" in r else "")
-    tuned = [t for t in r.get("finetune_rounds", []) if t]
-    note = (f"; fine-tuned {sum(t['iterations'] for t in tuned)} steps, loss {tuned[0]['loss_first_tenth']:.4f} -> "
-            f"{tuned[-1]['loss_last_tenth']:.4f}" if tuned else "")
-    if args.rounds > 1:
-        note += f"; {args.rounds} rounds kept {' -> '.join(map(str, r['round_gaussians']))}"
+    tuned = compact.meta.get("finetune") if steps else None
+    note = (f"; fine-tuned {tuned['iterations']} steps, loss {tuned['loss_first_tenth']:.4f} -> "
+            f"{tuned['loss_last_tenth']:.4f}" if tuned else "")
     print(f"{args.output}: {r['gaussians']} of {r['source_gaussians']} Gaussians ({r['ranking']} ranking), SH degree "
           f"{r['sh_degree']} (per Gaussian: {r['sh_degree_counts']}), measured from {r['poses']} poses{cells}{note}")
     return 0

@@ -3,8 +3,7 @@
 Poses are sampled in the drivable area of the bundle's map (``poses``); each Gaussian's largest blending
 weight per grid cell and the Gaussian-pixel pairs it costs there are measured (``measure``), with its summed
 weight over the training views (``benefit``) when the ranking needs it; the scene is reduced from those
-(``reduce``), optionally fine-tuned in between (a ``tune`` callback: ``recon.finetune`` in the CLI), in one
-or more prune-and-tune rounds.
+(``reduce``), optionally fine-tuned in between (a ``tune`` callback: ``recon.finetune`` in the CLI).
 """
 
 from __future__ import annotations
@@ -33,10 +32,10 @@ from .reduce import (
     visibility_grid,
 )
 
-__all__ = ["CompactOptions", "Measurement", "compact_bundle", "measure_bundle", "reduce_bundle", "round_budgets",
-           "pose_weights", "pose_measure", "tile_pairs", "cell_weights", "summed_weights", "sample_grid_poses",
-           "GridPoses", "RANKINGS", "check_budget", "budget_count", "ranking_score", "select", "lower_sh",
-           "sh_change_bound", "visibility_grid"]
+__all__ = ["CompactOptions", "Measurement", "compact_bundle", "measure_bundle", "reduce_bundle", "pose_weights",
+           "pose_measure", "tile_pairs", "cell_weights", "summed_weights", "sample_grid_poses", "GridPoses",
+           "RANKINGS", "check_budget", "budget_count", "ranking_score", "select", "lower_sh", "sh_change_bound",
+           "visibility_grid"]
 
 
 @dataclass(frozen=True)
@@ -53,7 +52,6 @@ class CompactOptions:
     seed: int = 0
     visibility: bool = True
     ranking: str = "weight"
-    rounds: int = 1
 
     def __post_init__(self) -> None:
         check_budget(self.budget)
@@ -63,8 +61,6 @@ class CompactOptions:
                 raise ValueError(f"{name.replace('_', ' ')} must be a finite number >= 0, got {getattr(self, name)}")
         if not (math.isfinite(self.cell) and self.cell > 0) or self.per_cell < 1:
             raise ValueError(f"need a cell size > 0 and at least 1 pose per cell; got {self.cell} m, {self.per_cell}")
-        if self.rounds < 1:
-            raise ValueError(f"rounds must be at least 1, got {self.rounds}")
         if self.ranking not in RANKINGS:
             raise ValueError(f"ranking must be one of {', '.join(RANKINGS)}, got {self.ranking!r}")
 
@@ -99,75 +95,35 @@ def measure_bundle(bundle: Bundle, options: CompactOptions, progress: bool = Fal
     return Measurement(grid, weights, pairs, benefit)
 
 
-def _in_source(measurement: Measurement, rows: Tensor, n: int) -> Measurement:
-    """A measurement of the subset ``rows`` of a scene of ``n`` Gaussians, re-indexed to that scene (the Gaussians
-    outside the subset: weight, pairs and benefit 0, so ``select`` never keeps them)."""
-    def spread(t: Tensor) -> Tensor:
-        out = t.new_zeros(*t.shape[:-1], n)
-        out[..., rows] = t
-        return out
-
-    m = measurement
-    return Measurement(m.grid, spread(m.weights), spread(m.pairs), None if m.benefit is None else spread(m.benefit))
-
-
-def round_budgets(options: CompactOptions, n: int) -> list[float]:
-    """The budget (of the ``n``-Gaussian source) each round keeps: geometric steps ``f^(k/R)`` down to the budget's
-    fraction ``f``, the last round the budget itself."""
-    fraction = budget_count(options.budget, n) / max(n, 1)
-    steps = [fraction ** (k / options.rounds) if fraction > 0 else options.budget for k in range(1, options.rounds)]
-    return [*steps, options.budget]
-
-
 def reduce_bundle(bundle: Bundle, measurement: Measurement, options: CompactOptions,
-                  tune: Callable[[Bundle, int], Bundle] | None = None, reader: DatasetReader | None = None,
-                  progress: bool = False) -> Bundle:
-    """The compact bundle: pruned by ``options.ranking`` in ``options.rounds`` rounds, each ``tune(bundle, round)``d
-    (same Gaussians, e.g. fine-tuned), then SH lowered and the visibility grid attached.
-
-    Round k of R keeps ``round_budgets``'s k-th share of the source; every round after the first ranks on the tuned
-    scene re-measured at the same poses (``measure_bundle``; ``reader`` for the benefit-cost ranking), so the
-    fine-tuning can make Gaussians redundant before they are dropped (prune-and-refine rounds, as PUP 3D-GS).
-    """
-    if options.rounds > 1 and options.ranking == "benefit-cost" and reader is None:
-        raise ValueError("re-measuring the benefit-cost ranking between rounds needs the training dataset")
-    n, grid = len(bundle.scene), measurement.grid
-    current, measured, kept = bundle, measurement, torch.arange(n)
-    counts, tuned = [], []
-    for k, budget in enumerate(round_budgets(options, n)):
-        if k:
-            measured = _in_source(measure_bundle(current, options, progress, reader), kept, n)
-        keep = select(measured.weights.amax(dim=0), budget, options.min_weight, measured.score(options.ranking))
-        rows = torch.searchsorted(kept, keep)   # both ascending, keep within kept
-        current = Bundle(current.scene.subset(rows), bundle.rig, bundle.map, current.meta, None, bundle.poses)
-        kept = keep
-        if tune is not None:
-            current = tune(current, k)
-            if len(current.scene) != len(keep):
-                raise ValueError(f"tuning changed the Gaussian count ({len(keep)} -> {len(current.scene)})")
-            tuned.append(current.meta.get("finetune"))
-        counts.append(len(keep))
-    scene, degrees = lower_sh(current.scene, options.sh_tolerance)
-    grid_out = (visibility_grid(grid, measured.weights[:, kept], options.min_weight, options.cell_budget)
+                  tune: Callable[[Bundle], Bundle] | None = None) -> Bundle:
+    """The compact bundle: pruned by ``options.ranking``, then ``tune``d (same Gaussians, e.g. fine-tuned), SH
+    lowered and the visibility grid attached."""
+    grid, weights = measurement.grid, measurement.weights
+    keep = select(weights.amax(dim=0), options.budget, options.min_weight, measurement.score(options.ranking))
+    pruned = Bundle(bundle.scene.subset(keep), bundle.rig, bundle.map, bundle.meta, None, bundle.poses)
+    if tune is not None:
+        pruned = tune(pruned)
+        if len(pruned.scene) != len(keep):
+            raise ValueError(f"tuning changed the Gaussian count ({len(keep)} -> {len(pruned.scene)})")
+    scene, degrees = lower_sh(pruned.scene, options.sh_tolerance)
+    grid_out = (visibility_grid(grid, weights[:, keep], options.min_weight, options.cell_budget)
                 if options.visibility else None)
     report: dict[str, Any] = {
-        "source_gaussians": n, "gaussians": len(scene), "ranking": options.ranking,
+        "source_gaussians": len(bundle.scene), "gaussians": len(scene), "ranking": options.ranking,
         "budget": options.budget, "cell_budget": options.cell_budget, "min_weight": options.min_weight,
-        "rounds": options.rounds, "round_gaussians": counts,
         "sh_tolerance": options.sh_tolerance, "sh_degree": scene.sh_degree,
-        "sh_degree_counts": torch.bincount(degrees, minlength=current.scene.sh_degree + 1).tolist(),
+        "sh_degree_counts": torch.bincount(degrees, minlength=pruned.scene.sh_degree + 1).tolist(),
         "poses": len(grid.poses), "cell_m": options.cell, "poses_per_cell": options.per_cell,
         "margin_m": options.margin, "seed": options.seed}
-    if any(tuned):
-        report["finetune_rounds"] = tuned
     if grid_out is not None:
         sizes = [len(grid_out.members(c)) for c in range(grid.n_cells) if grid_out.measured[c]]
         report["cells"] = len(sizes)
         report["cell_gaussians_mean"] = sum(sizes) / len(sizes)
-    return Bundle(scene, bundle.rig, bundle.map, {**current.meta, "compaction": report}, grid_out, bundle.poses)
+    return Bundle(scene, bundle.rig, bundle.map, {**pruned.meta, "compaction": report}, grid_out, bundle.poses)
 
 
 def compact_bundle(bundle: Bundle, options: CompactOptions = CompactOptions(), progress: bool = False,
-                   reader: DatasetReader | None = None, tune: Callable[[Bundle, int], Bundle] | None = None) -> Bundle:
+                   reader: DatasetReader | None = None, tune: Callable[[Bundle], Bundle] | None = None) -> Bundle:
     """Measure, then reduce: the compact bundle ready for ``bundle.save``."""
-    return reduce_bundle(bundle, measure_bundle(bundle, options, progress, reader), options, tune, reader, progress)
+    return reduce_bundle(bundle, measure_bundle(bundle, options, progress, reader), options, tune)
