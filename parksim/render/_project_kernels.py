@@ -1,14 +1,15 @@
 """Numba kernels of the fused UT projection: culling, forward, and the hand-written backward.
 
-One Gaussian per loop iteration, the same steps as the torch reference in ``projection.py``:
-quaternion -> ``L = R_cw R(q) S``, sigma points ``mu + L z_p`` through the lens model (centre, axis and
-rim handled as ``CameraModel.project``), weighted 2D moments, the adaptive fifth-degree blend, blur,
-eigenvalue clamp, conic. The backward recomputes its Gaussian's forward and applies the chain rule in
-reverse, so nothing per sigma point is stored between the passes.
+The same steps as the torch reference in ``projection.py``: quaternion -> ``L = R_cw R(q) S``, sigma
+points ``mu + L z_p`` through the lens model (centre, axis and rim handled as ``CameraModel.project``),
+weighted 2D moments, the adaptive fifth-degree blend, blur, eigenvalue clamp, conic. Gaussians are dealt
+to threads in chunks, each chunk with its own scratch arrays; within a chunk the 7-point sigma points of
+all its Gaussians go through the lens in one branch-free loop that vectorises (``footprints``), the rest
+runs Gaussian by Gaussian. The backward recomputes its chunk's sigma points (with Jacobians, in the same
+kind of loop) and applies the chain rule in reverse, so nothing per sigma point is kept between passes.
 
-Arrays in and out keep the caller's dtype (float32 in the renderer); arithmetic inside is float64:
-this is scalar code, where float64 costs about what float32 would, and it keeps float32 outputs within
-rounding of exact. Gaussians are dealt to threads in chunks, each chunk with its own scratch arrays.
+Arrays in and out keep the caller's dtype (float32 in the renderer); arithmetic inside is float64, which
+keeps float32 outputs within rounding of exact.
 """
 
 from __future__ import annotations
@@ -147,8 +148,9 @@ def _project(model: int, lens: LensSlots, axis_eps: float, tiny: float, x: float
 
 @numba.njit(inline="always", cache=True)
 def _project_loop(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray, uv: np.ndarray,
-                  n: int) -> None:
-    """``uv[:, :n]``: pixels of the camera-frame points ``pts[:, :n]`` (one branch-free loop: it vectorises).
+                  n: int, jac: bool) -> None:
+    """``uv[:, :n]``: pixels of the camera-frame points ``pts[:, :n]`` (one branch-free loop: it vectorises),
+    and with ``jac`` the Jacobian rows ``du/dp, dv/dp`` in ``uv[2:8]``.
 
     The lens slots are read into a tuple first: loads from the array could alias ``uv`` and would keep
     LLVM from vectorising.
@@ -159,18 +161,20 @@ def _project_loop(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pt
         out = _project(model, values, axis_eps, tiny, pts[0, i], pts[1, i], pts[2, i])
         uv[0, i] = out[0]
         uv[1, i] = out[1]
+        if jac:
+            uv[2, i], uv[3, i], uv[4, i], uv[5, i], uv[6, i], uv[7, i] = out[2], out[3], out[4], out[5], out[6], out[7]
 
 
 @numba.njit(inline="always", cache=True)
 def project_batch(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray, uv: np.ndarray,
-                  n: int) -> None:
+                  n: int, jac: bool) -> None:
     """``_project_loop`` with the lens model a constant in each branch, so the model test leaves the loop."""
     if model == OPENCV_FISHEYE:
-        _project_loop(OPENCV_FISHEYE, lens, axis_eps, tiny, pts, uv, n)
+        _project_loop(OPENCV_FISHEYE, lens, axis_eps, tiny, pts, uv, n, jac)
     elif model == RADIAL_POLY:
-        _project_loop(RADIAL_POLY, lens, axis_eps, tiny, pts, uv, n)
+        _project_loop(RADIAL_POLY, lens, axis_eps, tiny, pts, uv, n, jac)
     else:
-        _project_loop(PINHOLE, lens, axis_eps, tiny, pts, uv, n)
+        _project_loop(PINHOLE, lens, axis_eps, tiny, pts, uv, n, jac)
 
 
 @numba.njit(inline="always", cache=True)
@@ -278,13 +282,12 @@ def _adaptive_weight(opts: np.ndarray, x: float, y: float, z: float, sigma: floa
 
 
 @numba.njit(inline="always", cache=True)
-def _ut(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
-        L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
-        wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool
-        ) -> tuple[bool, float, float, float, float, float]:
-    """UT moments into ``mom`` (rows: 7-point, fifth-degree, blended); returns ``_adaptive_weight``."""
-    _sigma_points(model, lens, opts, x, y, z, L, z7, uv7, jac)
-    m7 = _moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
+def _ut_blend(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
+              L: np.ndarray, m7: tuple[float, float, float, float, float], z19: np.ndarray, wm19: np.ndarray,
+              wc19: np.ndarray, uv19: np.ndarray, mom: np.ndarray, jac: bool
+              ) -> tuple[bool, float, float, float, float, float]:
+    """The UT moments from the 7-point ones ``m7`` into ``mom`` (rows: 7-point, fifth-degree, blended), projecting
+    the fifth-degree set into ``uv19`` where ``_adaptive_weight`` asks for it; returns that weight."""
     aw = _adaptive_weight(opts, x, y, z, sigma)
     m19 = m7
     if aw[0]:
@@ -294,6 +297,49 @@ def _ut(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: f
         mom[0, k], mom[1, k] = m7[k], m19[k]
         mom[2, k] = m7[k] + aw[1] * (m19[k] - m7[k]) if aw[0] else m7[k]
     return aw
+
+
+@numba.njit(inline="always", cache=True)
+def _sigma_batch(xyz: np.ndarray, L: np.ndarray, zs: np.ndarray, m: int, pts: np.ndarray) -> None:
+    """``pts[:, p * m + i] = xyz[i] + L[i] z_p`` for the first ``m`` Gaussians: point-major, so that one
+    ``project_batch`` loop over every sigma point of a chunk vectorises."""
+    for p in range(zs.shape[0]):
+        z0, z1, z2 = zs[p, 0], zs[p, 1], zs[p, 2]
+        for i in range(m):
+            for d in range(3):
+                pts[d, p * m + i] = xyz[i, d] + (L[i, d, 0] * z0 + L[i, d, 1] * z1 + L[i, d, 2] * z2)
+
+
+@numba.njit(inline="always", cache=True)
+def footprints(model: int, lens: np.ndarray, opts: np.ndarray, m: int, xyz: np.ndarray, L: np.ndarray,
+               sig: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
+               wm19: np.ndarray, wc19: np.ndarray, pts: np.ndarray, uv: np.ndarray, uv19: np.ndarray,
+               mom: np.ndarray, foot: np.ndarray, valid: np.ndarray) -> None:
+    """Image footprints of the first ``m`` camera-frame Gaussians (centres ``xyz``, covariance factors ``L``,
+    largest scales ``sig``): ``foot[:, i] = (u, v, a, b, c, depth, radius)`` and ``valid[i]`` as ``_clamped``.
+
+    Their 7-point sigma points go through the lens in one vectorised loop (``pts``, ``uv``: 7 m columns), the
+    moments in another; the fifth-degree blend runs Gaussian by Gaussian (``_ut_blend``, ``uv19``, ``mom``).
+    """
+    wm = (wm7[0], wm7[1], wm7[2], wm7[3], wm7[4], wm7[5], wm7[6])   # tuples: constant point count, no aliasing
+    wc = (wc7[0], wc7[1], wc7[2], wc7[3], wc7[4], wc7[5], wc7[6])
+    _sigma_batch(xyz, L, z7, m, pts)
+    project_batch(model, lens, opts[AXIS_EPS], opts[TINY], pts, uv, N_UT * m, False)
+    for i in range(m):
+        foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i] = _moments(uv[0], uv[1], i, m, wm, wc)
+    for i in range(m):   # the fifth-degree blend, for the few Gaussians that need it
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        if _adaptive_weight(opts, x, y, z, sig[i])[0]:
+            m7 = (foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i])
+            _ut_blend(model, lens, opts, x, y, z, sig[i], L[i], m7, z19, wm19, wc19, uv19, mom, False)
+            for j in range(5):
+                foot[j, i] = mom[2, j]
+    for i in range(m):
+        u, v, a, b, c, depth, radius, ok = _clamped(foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i],
+                                                    xyz[i, 0], xyz[i, 1], xyz[i, 2], opts)
+        foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i], foot[5, i], foot[6, i] = (
+            u, v, a, b, c, depth, radius)
+        valid[i] = ok
 
 
 @numba.njit(inline="always", cache=True)
@@ -467,41 +513,36 @@ def _clamped(mean_u: float, mean_v: float, a: float, b: float, c: float, x: floa
     return mean_u, mean_v, a, b, c, math.sqrt(x * x + y * y + z * z), radius, valid
 
 
-@numba.njit(inline="always", cache=True)
-def _footprint(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float, sigma: float,
-               L: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
-               wm19: np.ndarray, wc19: np.ndarray, uv7: np.ndarray, uv19: np.ndarray, mom: np.ndarray
-               ) -> tuple[float, float, float, float, float, float, float, bool]:
-    """One camera-frame Gaussian's image footprint ``(u, v, a, b, c, depth, radius, valid)``: UT, then ``_clamped``."""
-    _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom, False)
-    return _clamped(mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4], x, y, z, opts)
-
-
 @numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def _forward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, quats: np.ndarray,
                    log_scales: np.ndarray, rot: np.ndarray, model: int, lens: np.ndarray, opts: np.ndarray,
                    z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray, wm19: np.ndarray,
                    wc19: np.ndarray, out_means: np.ndarray, out_conics: np.ndarray, out_cov: np.ndarray,
                    out_depths: np.ndarray, out_radii: np.ndarray, out_valid: np.ndarray) -> None:
-    """``forward`` for the rows ``start:stop`` of ``index`` (one thread's chunk)."""
-    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
-    R, L, s, mom = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5))
-    for i in range(start, stop):
-        g = index[i]
-        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+    """``forward`` for the rows ``start:stop`` of ``index`` (one thread's chunk), through ``footprints``."""
+    m = stop - start
+    R, s = np.empty((3, 3)), np.empty(3)
+    xyz, L, sig = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty(m)
+    pts, uv, uv19 = np.empty((3, N_UT * m)), np.empty((2, N_UT * m)), np.empty((z19.shape[0], 8))
+    mom, foot, valid = np.empty((3, 5)), np.empty((7, m)), np.empty(m, np.bool_)
+    for i in range(m):
+        g = index[start + i]
+        xyz[i, 0], xyz[i, 1], xyz[i, 2] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
         qw, qx, qy, qz, _ = _unit_quaternion(quats[g])
         for j in range(3):
             s[j] = math.exp(float(log_scales[g, j]))
-        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L)
-        u, v, a, b, c, depth, radius, valid = _footprint(model, lens, opts, x, y, z, max(s[0], s[1], s[2]), L,
-                                                         z7, wm7, wc7, z19, wm19, wc19, uv7, uv19, mom)
+        sig[i] = max(s[0], s[1], s[2])
+        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L[i])
+    footprints(model, lens, opts, m, xyz, L, sig, z7, wm7, wc7, z19, wm19, wc19, pts, uv, uv19, mom, foot, valid)
+    for i in range(m):
+        a, b, c = foot[2, i], foot[3, i], foot[4, i]
         det = a * c - b * b
-        out_means[i, 0], out_means[i, 1] = u, v
-        out_conics[i, 0], out_conics[i, 1], out_conics[i, 2] = c / det, -b / det, a / det
-        out_cov[i, 0], out_cov[i, 1], out_cov[i, 2] = a, b, c
-        out_depths[i] = depth
-        out_radii[i] = radius
-        out_valid[i] = valid
+        out_means[start + i, 0], out_means[start + i, 1] = foot[0, i], foot[1, i]
+        out_conics[start + i, 0], out_conics[start + i, 1], out_conics[start + i, 2] = c / det, -b / det, a / det
+        out_cov[start + i, 0], out_cov[start + i, 1], out_cov[start + i, 2] = a, b, c
+        out_depths[start + i] = foot[5, i]
+        out_radii[start + i] = foot[6, i]
+        out_valid[start + i] = valid[i]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -524,30 +565,49 @@ def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray,
                     wc19: np.ndarray, g_means2d: np.ndarray, g_conics: np.ndarray, g_cov2d: np.ndarray,
                     g_depths: np.ndarray, grad_means: np.ndarray, grad_quats: np.ndarray,
                     grad_log_scales: np.ndarray, g_rot: np.ndarray) -> None:
-    """``backward`` for the rows ``start:stop`` of ``index``; adds the ``rot`` gradient into ``g_rot``."""
-    uv7, uv19 = np.empty((z7.shape[0], 8)), np.empty((z19.shape[0], 8))
-    R, L, s, mom = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty((3, 5))
+    """``backward`` for the rows ``start:stop`` of ``index``; adds the ``rot`` gradient into ``g_rot``.
+
+    The rows with an incoming gradient are gathered first and their 7-point sigma points projected, with
+    Jacobians, in one vectorised loop (``_sigma_batch``, ``project_batch``); the chain rule runs row by row.
+    """
+    cap = stop - start
+    rows, xyz, L, sig = np.empty(cap, np.int64), np.empty((cap, 3)), np.empty((cap, 3, 3)), np.empty(cap)
+    R, s, q = np.empty((cap, 3, 3)), np.empty((cap, 3)), np.empty((cap, 5))
+    pts, uvj = np.empty((3, N_UT * cap)), np.empty((8, N_UT * cap))
+    uv7, uv19, mom = np.empty((N_UT, 8)), np.empty((z19.shape[0], 8)), np.empty((3, 5))
     g_mu, g_L, G = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    m = 0
     for i in range(start, stop):
-        g = index[i]
         if (g_means2d[i, 0] == 0.0 and g_means2d[i, 1] == 0.0 and g_conics[i, 0] == 0.0 and g_conics[i, 1] == 0.0
                 and g_conics[i, 2] == 0.0 and g_cov2d[i, 0] == 0.0 and g_cov2d[i, 1] == 0.0
                 and g_cov2d[i, 2] == 0.0 and g_depths[i] == 0.0):
             continue   # drawn nowhere (occluded, or culled by the rasterizer): its gradients stay 0, as zeroed
-        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        qw, qx, qy, qz, qn = _unit_quaternion(quats[g])
+        g = index[i]
+        rows[m] = i
+        xyz[m, 0], xyz[m, 1], xyz[m, 2] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        q[m, 0], q[m, 1], q[m, 2], q[m, 3], q[m, 4] = _unit_quaternion(quats[g])
         for j in range(3):
-            s[j] = math.exp(float(log_scales[g, j]))
-        sigma = max(s[0], s[1], s[2])
-        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L)
-        rich, w, dwx, dwy, dwz, dws = _ut(model, lens, opts, x, y, z, sigma, L, z7, wm7, wc7, z19, wm19,
-                                          wc19, uv7, uv19, mom, True)
+            s[m, j] = math.exp(float(log_scales[g, j]))
+        sig[m] = max(s[m, 0], s[m, 1], s[m, 2])
+        _covariance_sqrt(q[m, 0], q[m, 1], q[m, 2], q[m, 3], s[m], rot, R[m], L[m])
+        m += 1
+    _sigma_batch(xyz, L, z7, m, pts)
+    project_batch(model, lens, opts[AXIS_EPS], opts[TINY], pts, uvj, N_UT * m, True)
+    for k in range(m):
+        i, g = rows[k], index[rows[k]]
+        x, y, z, sigma = xyz[k, 0], xyz[k, 1], xyz[k, 2], sig[k]
+        for p in range(N_UT):
+            for col in range(8):
+                uv7[p, col] = uvj[col, p * m + k]
+        m7 = _moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
+        rich, w, dwx, dwy, dwz, dws = _ut_blend(model, lens, opts, x, y, z, sigma, L[k], m7, z19, wm19, wc19,
+                                                uv19, mom, True)
         n = math.sqrt(x * x + y * y + z * z)
         gd = float(g_depths[i])
         g_mu[0], g_mu[1], g_mu[2] = gd * x / n, gd * y / n, gd * z / n
-        for k in range(3):
+        for r in range(3):
             for j in range(3):
-                g_L[k, j] = 0.0
+                g_L[r, j] = 0.0
         mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
         finite = np.isfinite(mean_u) and np.isfinite(mean_v) and np.isfinite(a) and np.isfinite(b) \
             and np.isfinite(c)
@@ -573,12 +633,12 @@ def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray,
                 g_mu[1] += gw * dwy
                 g_mu[2] += gw * dwz
                 gs = gw * dws
-        for k in range(3):
-            grad_means[g, k] = g_mu[k]
+        for j in range(3):
+            grad_means[g, j] = g_mu[j]
         # sigma = exp(max log-scale): torch's amax splits the gradient evenly between ties
-        ties = (s[0] == sigma) + (s[1] == sigma) + (s[2] == sigma)
-        _scale_rotation_backward(g, qw, qx, qy, qz, qn, s, sigma, gs / ties, rot, R, g_L, G,
-                                 grad_quats, grad_log_scales, g_rot)
+        ties = (s[k, 0] == sigma) + (s[k, 1] == sigma) + (s[k, 2] == sigma)
+        _scale_rotation_backward(g, q[k, 0], q[k, 1], q[k, 2], q[k, 3], q[k, 4], s[k], sigma, gs / ties, rot, R[k],
+                                 g_L, G, grad_quats, grad_log_scales, g_rot)
 
 
 @numba.njit(parallel=True, cache=True)

@@ -28,18 +28,15 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
                  out_depths: np.ndarray) -> None:
     """``project_views`` for the Gaussians ``start:stop`` (one thread's chunk), all cameras.
 
-    Per camera: cull and gather the visible Gaussians; then, each in one loop over them that vectorises,
-    their 7-point sigma points, projections, UT moments and clamped footprints; the rich point set for the
-    few that need it, and the SH colour of the drawn ones, Gaussian by Gaussian.
+    Per camera: cull and gather the visible Gaussians; their footprints (``_project_kernels.footprints``:
+    the sigma points of all of them projected in one vectorised loop); the SH colour of the drawn ones.
     """
-    m_max, n7 = stop - start, pk.N_UT
-    wm = (wm7[0], wm7[1], wm7[2], wm7[3], wm7[4], wm7[5], wm7[6])   # tuples: constant point count, no aliasing
-    wc = (wc7[0], wc7[1], wc7[2], wc7[3], wc7[4], wc7[5], wc7[6])
+    m_max = stop - start
     uv19, basis = np.empty((z19.shape[0], 8)), np.empty(16)
     R, s = np.empty((m_max, 3, 3)), np.empty((m_max, 3))     # per Gaussian, shared by the cameras
     vis, xyz, L, sig = np.empty(m_max, np.int64), np.empty((m_max, 3)), np.empty((m_max, 3, 3)), np.empty(m_max)
-    pts, uv = np.empty((3, n7 * m_max)), np.empty((2, n7 * m_max))
-    mom, foot, valid = np.empty((5, m_max)), np.empty((6, m_max)), np.empty(m_max, np.bool_)
+    pts, uv = np.empty((3, pk.N_UT * m_max)), np.empty((2, pk.N_UT * m_max))
+    mom, foot, valid = np.empty((3, 5)), np.empty((7, m_max)), np.empty(m_max, np.bool_)
     for k in range(m_max):
         qw, qx, qy, qz, _ = pk._unit_quaternion(quats[start + k])
         pk._rotation(qw, qx, qy, qz, R[k])
@@ -61,28 +58,8 @@ def _views_range(start: int, stop: int, means: np.ndarray, quats: np.ndarray, lo
             xyz[m, 0], xyz[m, 1], xyz[m, 2] = x, y, z
             pk._rotate_scaled(rot, R[k], s[k], L[m])
             m += 1
-        for p in range(n7):   # point-major: sigma point p of visible Gaussian i sits at p * m + i
-            z0, z1, z2 = z7[p, 0], z7[p, 1], z7[p, 2]
-            for i in range(m):
-                for d in range(3):
-                    pts[d, p * m + i] = xyz[i, d] + (L[i, d, 0] * z0 + L[i, d, 1] * z1 + L[i, d, 2] * z2)
-        pk.project_batch(models[cam], lens, opt[pk.AXIS_EPS], opt[pk.TINY], pts, uv, n7 * m)
-        for i in range(m):
-            mu, mv, a, b, c = pk._moments(uv[0], uv[1], i, m, wm, wc)
-            mom[0, i], mom[1, i], mom[2, i], mom[3, i], mom[4, i] = mu, mv, a, b, c
-        for i in range(m):    # the fifth-degree set, blended in, where the 7-point UT is wrong (_ut)
-            x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-            rich, w, _, _, _, _ = pk._adaptive_weight(opt, x, y, z, sig[i])
-            if rich:
-                pk._sigma_points(models[cam], lens, opt, x, y, z, L[i], z19, uv19, False)
-                m19 = pk._moments(uv19[:, 0], uv19[:, 1], 0, 1, wm19, wc19)
-                for j in range(5):
-                    mom[j, i] += w * (m19[j] - mom[j, i])
-        for i in range(m):
-            u, v, a, b, c, depth, _, ok = pk._clamped(mom[0, i], mom[1, i], mom[2, i], mom[3, i], mom[4, i],
-                                                      xyz[i, 0], xyz[i, 1], xyz[i, 2], opt)
-            foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i], foot[5, i] = u, v, a, b, c, depth
-            valid[i] = ok
+        pk.footprints(models[cam], lens, opt, m, xyz, L, sig, z7, wm7, wc7, z19, wm19, wc19, pts, uv, uv19, mom,
+                      foot, valid)
         for i in range(m):
             if not valid[i]:
                 continue
