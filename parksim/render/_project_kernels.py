@@ -364,7 +364,7 @@ def _eig_clamp(a: float, b: float, c: float, lo: float, hi: float, tiny: float
     return True, pos, r, l1, l2, s, f2 + s * (a - l2), s * b, f2 + s * (c - l2)
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always", cache=True)
 def _eig_clamp_backward(a: float, b: float, c: float, lo: float, hi: float, tiny: float,
                         ga: float, gb: float, gc: float) -> tuple[float, float, float]:
     """Gradient of ``_eig_clamp``'s output w.r.t. ``(a, b, c)``."""
@@ -391,7 +391,7 @@ def _eig_clamp_backward(a: float, b: float, c: float, lo: float, hi: float, tiny
     return s * ga + 0.5 * (gmid + ghalf), s * gb + gdisc_b, s * gc + 0.5 * (gmid - ghalf)
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always", cache=True)
 def _point_backward(uvj: np.ndarray, p: int, gu: float, gv: float, z_set: np.ndarray,
                     g_mu: np.ndarray, g_L: np.ndarray) -> None:
     """Pixel gradient of sigma point ``p`` -> its 3D point ``mu + L z_p`` -> ``g_mu``, ``g_L``."""
@@ -402,7 +402,7 @@ def _point_backward(uvj: np.ndarray, p: int, gu: float, gv: float, z_set: np.nda
             g_L[i, j] += gp * z_set[p, j]
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always", cache=True)
 def _moments_backward(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, gmu: float, gmv: float,
                       ga: float, gb: float, gc: float, scale: float, z_set: np.ndarray,
                       g_mu: np.ndarray, g_L: np.ndarray) -> None:
@@ -429,7 +429,7 @@ def _moments_backward(uvj: np.ndarray, wm: np.ndarray, wc: np.ndarray, gmu: floa
     _point_backward(uvj, 0, gu0 * scale, gv0 * scale, z_set, g_mu, g_L)
 
 
-@numba.njit(cache=True)
+@numba.njit(inline="always", cache=True)
 def _scale_rotation_backward(g: int, qw: float, qx: float, qy: float, qz: float, qn: float, s: np.ndarray,
                              sigma: float, g_sigma: float, rot: np.ndarray, R: np.ndarray, g_L: np.ndarray,
                              G: np.ndarray, grad_quats: np.ndarray, grad_log_scales: np.ndarray,
