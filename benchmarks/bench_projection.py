@@ -5,26 +5,30 @@ inside a 40 x 40 x 3 m box of random Gaussians (3-sigma 5 cm - 1 m, random orien
 projection as ``render()`` runs it per camera (world -> camera transform, cull, UT), forward and
 forward+backward (a weighted sum of means, conics and depths as the loss), 1 and 4 cameras, 1e5 and 2e5
 Gaussians, float32. Reports medians after a warm-up and the torch/fused ratio; --out writes markdown.
+``--reference MODULE`` times that importable copy of the package's fused path instead of the torch path,
+alternately with this tree's (wall and process-CPU medians), for A/B runs of the kernels.
 
     .venv/bin/python benchmarks/bench_projection.py --out benchmarks/RESULTS_projection.md
+    PYTHONPATH=/tmp/ab .venv/bin/python benchmarks/bench_projection.py --reference parksim_prev --threads 1
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import importlib
 import os
 import platform
 import statistics
 import sys
 import time
+from typing import Any
 
 import numba
 import torch
 
-from parksim.camera import OpenCVFisheye
+from parksim.bench.common import time_medians
 from parksim.geometry import rotation_from_quaternion
-from parksim.render.projection import project_gaussians
 
 Scene = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
@@ -38,9 +42,11 @@ def make_scene(n: int, seed: int = 0) -> Scene:
     return means, quats, log_scales
 
 
-def make_rig() -> list[tuple[OpenCVFisheye, torch.Tensor, torch.Tensor]]:
-    """(camera, R_cam_world, t_cam_world) of four 190 deg fisheyes at the origin, 1 m up."""
-    cam = OpenCVFisheye(640, 480, 160.0, 160.0, 319.5, 239.5, [0.05, -0.01, 0.002, -0.0005], max_fov_deg=190.0)
+def make_rig(package: str = "parksim") -> list[tuple[Any, torch.Tensor, torch.Tensor]]:
+    """(camera, R_cam_world, t_cam_world) of four 190 deg fisheyes at the origin, 1 m up (``package``'s camera
+    class: the fused path dispatches on it)."""
+    fisheye = importlib.import_module(f"{package}.camera").OpenCVFisheye
+    cam = fisheye(640, 480, 160.0, 160.0, 319.5, 239.5, [0.05, -0.01, 0.002, -0.0005], max_fov_deg=190.0)
     # camera x right, y down, z forward; yaw 0 looks along world +x
     front = torch.tensor([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
     rig = []
@@ -53,8 +59,10 @@ def make_rig() -> list[tuple[OpenCVFisheye, torch.Tensor, torch.Tensor]]:
     return rig
 
 
-def project_rig(scene: Scene, rig: list, backend: str, backward: bool) -> None:
-    """Project the scene into every camera of ``rig`` (as ``render()`` does), optionally backpropagate."""
+def project_rig(scene: Scene, rig: list, backend: str, backward: bool, package: str = "parksim") -> None:
+    """Project the scene into every camera of ``rig`` (as ``render()`` does) with ``package``'s
+    ``project_gaussians``, optionally backpropagate."""
+    project_gaussians = importlib.import_module(f"{package}.render.projection").project_gaussians
     means, quats, log_scales = (t.detach().requires_grad_(backward) for t in scene)
     loss = torch.zeros(())
     for cam, R, t in rig:
@@ -76,12 +84,29 @@ def median_ms(fn, repeats: int) -> float:
     return 1000 * statistics.median(times)
 
 
+def _row(scene: Scene, rig: list, n_cams: int, backward: bool, args: argparse.Namespace) -> str:
+    """One table row: the fused path against the torch path, or against ``args.reference``'s fused path."""
+    label = f"| {len(scene[0]):,} | {n_cams} | {'fwd+bwd' if backward else 'fwd'} |"
+    if args.reference:
+        ref_rig = make_rig(args.reference)
+        new, old = time_medians([lambda: project_rig(scene, rig[:n_cams], "fused", backward),
+                                 lambda: project_rig(scene, ref_rig[:n_cams], "fused", backward, args.reference)],
+                                args.repeats)
+        return (f"{label} {new.wall_ms:.1f} / {new.cpu_ms:.1f} | {old.wall_ms:.1f} / {old.cpu_ms:.1f} | "
+                f"{old.wall_ms / new.wall_ms:.2f}x / {old.cpu_ms / new.cpu_ms:.2f}x |")
+    ms = {b: median_ms(lambda b=b: project_rig(scene, rig[:n_cams], b, backward),
+                       args.repeats if b == "fused" else min(args.repeats, 3)) for b in ("torch", "fused")}
+    return f"{label} {ms['torch']:.1f} | {ms['fused']:.1f} | {ms['torch'] / ms['fused']:.1f}x |"
+
+
 def main() -> None:
     """Run every case and print (and optionally write) the table."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (torch path: 3 at most)")
     ap.add_argument("--threads", type=int, help="torch and numba threads (default: their defaults)")
     ap.add_argument("--out", help="write the results as markdown here")
+    ap.add_argument("--reference", help="module name of a package copy whose fused path is timed alongside "
+                                        "(instead of the torch path)")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -92,13 +117,8 @@ def main() -> None:
         scene = make_scene(n)
         for n_cams in (1, 4):
             for backward in (False, True):
-                ms = {b: median_ms(lambda b=b: project_rig(scene, rig[:n_cams], b, backward),
-                                   args.repeats if b == "fused" else min(args.repeats, 3))
-                      for b in ("torch", "fused")}
-                row = (f"| {n:,} | {n_cams} | {'fwd+bwd' if backward else 'fwd'} | {ms['torch']:.1f} | "
-                       f"{ms['fused']:.1f} | {ms['torch'] / ms['fused']:.1f}x |")
-                print(row, flush=True)
-                rows.append(row)
+                rows.append(_row(scene, rig, n_cams, backward, args))
+                print(rows[-1], flush=True)
     lines = [
         "# Projection benchmark: fused numba kernel vs torch path",
         "",
@@ -111,7 +131,9 @@ def main() -> None:
         "- scene: random Gaussians in a 40 x 40 x 3 m box, 4 x 640x480 OpenCVFisheye 190 deg at the centre, "
         "float32; times include world->camera transform and culling; medians in ms",
         "",
-        "| Gaussians | cameras | pass | torch (ms) | fused (ms) | speed-up |",
+        *((f"| Gaussians | cameras | pass | fused wall / CPU (ms) | {args.reference} wall / CPU (ms) | "
+           "speed-up wall / CPU |",) if args.reference else
+          ("| Gaussians | cameras | pass | torch (ms) | fused (ms) | speed-up |",)),
         "| ---: | ---: | --- | ---: | ---: | ---: |",
         *rows,
         "",

@@ -52,18 +52,19 @@ def set_threads(n: int) -> None:
 
 def time_medians(fns: Sequence[Callable[[], Any]], repeats: int, warmup: int = 1,
                  tick: Callable[[], Any] = lambda: None) -> list[Timing]:
-    """Median time of each closure, called in turn per round so a change of load hits all of them alike;
+    """Median time of each closure, called in turn per round so a change of load hits all of them alike, in
+    reverse order every other round (the first of a round was measured to read up to 10 % slower);
     ``warmup`` untimed rounds first; ``tick`` is called after every round (progress)."""
     for _ in range(warmup):
         for fn in fns:
             fn()
         tick()
     samples: list[list[tuple[float, float]]] = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, ts in zip(fns, samples):
+    for r in range(repeats):
+        for k in range(len(fns)) if r % 2 == 0 else reversed(range(len(fns))):
             t0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            ts.append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
+            fns[k]()
+            samples[k].append((1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)))
         tick()
     return [Timing(statistics.median(w for w, _ in ts), statistics.median(c for _, c in ts), repeats) for ts in samples]
 
