@@ -129,3 +129,18 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def test_serve_wait_stops_on_a_sigint_that_lands_on_another_thread():
+    """``parksim serve --ray`` waits for Ctrl-C while Ray's threads run: the kernel may hand SIGINT to one of them,
+    and the waiting main thread must still stop (it hung for good, now and then, when it slept on a bare lock)."""
+    code = ("import signal, threading, time\n"
+            "from parksim.commands.serve import wait_for_interrupt\n"
+            "def poke():\n"
+            "    time.sleep(0.3)\n"
+            "    signal.pthread_kill(threading.get_ident(), signal.SIGINT)   # to this thread, not the main one\n"
+            "threading.Thread(target=poke, daemon=True).start()\n"
+            "wait_for_interrupt()\n"
+            "print('stopped')\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert done.returncode == 0 and done.stdout.strip() == "stopped", done.stderr

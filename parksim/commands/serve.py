@@ -6,7 +6,7 @@ import argparse
 import contextlib
 import signal
 import socket
-import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -141,11 +141,22 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
         size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
         print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
               "(viewer at /, docs at /docs)", flush=True)
-        with contextlib.suppress(KeyboardInterrupt):
-            threading.Event().wait()
+        wait_for_interrupt()
     finally:
         ray_serve.stop(own_ray=args.address is None)
     return 0
+
+
+def wait_for_interrupt(poll_s: float = 0.5) -> None:
+    """Block until Ctrl-C (or a signal that raises ``KeyboardInterrupt``), waking every ``poll_s`` seconds.
+
+    The kernel hands a process-wide SIGINT to any thread that does not block it, often one of Ray's. Python then
+    only flags it for the main thread, whose handler runs when that thread next wakes: a main thread asleep on a
+    lock without a timeout never did (``parksim serve --ray`` ignored Ctrl-C, now and then, for good).
+    """
+    with contextlib.suppress(KeyboardInterrupt):
+        while True:
+            time.sleep(poll_s)
 
 
 def _mib(value: float | None) -> int | None:
