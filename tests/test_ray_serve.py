@@ -143,7 +143,7 @@ def test_ctrl_c_takes_the_deployment_down(served):
     proc.send_signal(signal.SIGINT)
     try:
         assert proc.wait(120) == 0
-    except subprocess.TimeoutExpired:   # the stacks found the cause once (serve.wait_for_interrupt): keep them
+    except subprocess.TimeoutExpired:   # its stacks showed the cause once (serve.wait_for_interrupt): keep them
         proc.send_signal(signal.SIGABRT)
         proc.wait(30)
         pytest.fail("parksim serve --ray still ran 120 s after Ctrl-C; its stderr and stacks:\n"

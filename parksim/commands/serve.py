@@ -136,7 +136,6 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
         sock.close()
     scaling = ray_serve.Scaling(args.replicas or 1, args.autoscale, args.replica_cpus or 1)
     ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
-    signal.signal(signal.SIGTERM, signal.default_int_handler)   # as Ctrl-C (after ray.init, which sets its own)
     try:
         size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
         print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
@@ -148,12 +147,16 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
 
 
 def wait_for_interrupt(poll_s: float = 0.5) -> None:
-    """Block until Ctrl-C (or a signal that raises ``KeyboardInterrupt``), waking every ``poll_s`` seconds.
+    """Block until SIGINT (Ctrl-C) or SIGTERM, which both stop the server as they stop uvicorn's.
 
-    The kernel hands a process-wide SIGINT to any thread that does not block it, often one of Ray's. Python then
-    only flags it for the main thread, whose handler runs when that thread next wakes: a main thread asleep on a
-    lock without a timeout never did (``parksim serve --ray`` ignored Ctrl-C, now and then, for good).
+    Both are taken here whatever the process inherited (call it after ``ray.init``, which sets its own SIGTERM
+    handler): a background job of a non-interactive shell starts with SIGINT ignored, and Python keeps an ignored
+    SIGINT ignored. The main thread wakes every ``poll_s`` seconds, so a signal the kernel hands to another thread
+    (Ray runs many) is acted on too; a bare lock wait would sleep through it.
     """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     with contextlib.suppress(KeyboardInterrupt):
         while True:
             time.sleep(poll_s)
