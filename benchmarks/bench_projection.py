@@ -27,7 +27,7 @@ from typing import Any
 import numba
 import torch
 
-from parksim.bench.common import time_medians
+from parksim.bench.common import cpu_model, time_medians
 from parksim.geometry import rotation_from_quaternion
 
 Scene = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
@@ -120,11 +120,12 @@ def main() -> None:
                 rows.append(_row(scene, rig, n_cams, backward, args))
                 print(rows[-1], flush=True)
     lines = [
-        "# Projection benchmark: fused numba kernel vs torch path",
+        "# Projection benchmark: fused numba kernel vs " + (f"{args.reference}'s fused path" if args.reference
+                                                             else "torch path"),
         "",
         f"- command: `{' '.join([os.path.relpath(sys.executable), *sys.argv])}`",
         f"- date: {datetime.datetime.now().isoformat(timespec='seconds')}",
-        f"- machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, numba threads "
+        f"- machine: {cpu_model()}, {platform.machine()}, {os.cpu_count()} cores, numba threads "
         f"{numba.get_num_threads()}, torch threads {torch.get_num_threads()}, load average "
         f"{', '.join(f'{v:.1f}' for v in os.getloadavg())} (shared: compare within a row only)",
         f"- python {platform.python_version()}, torch {torch.__version__}, numba {numba.__version__}",
