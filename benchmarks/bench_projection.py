@@ -19,9 +19,7 @@ import datetime
 import importlib
 import os
 import platform
-import statistics
 import sys
-import time
 from typing import Any
 
 import numba
@@ -73,17 +71,6 @@ def project_rig(scene: Scene, rig: list, backend: str, backward: bool, package: 
         loss.backward()
 
 
-def median_ms(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` in milliseconds after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000 * statistics.median(times)
-
-
 def _row(scene: Scene, rig: list, n_cams: int, backward: bool, args: argparse.Namespace) -> str:
     """One table row: the fused path against the torch path, or against ``args.reference``'s fused path."""
     label = f"| {len(scene[0]):,} | {n_cams} | {'fwd+bwd' if backward else 'fwd'} |"
@@ -94,8 +81,9 @@ def _row(scene: Scene, rig: list, n_cams: int, backward: bool, args: argparse.Na
                                 args.repeats)
         return (f"{label} {new.wall_ms:.1f} / {new.cpu_ms:.1f} | {old.wall_ms:.1f} / {old.cpu_ms:.1f} | "
                 f"{old.wall_ms / new.wall_ms:.2f}x / {old.cpu_ms / new.cpu_ms:.2f}x |")
-    ms = {b: median_ms(lambda b=b: project_rig(scene, rig[:n_cams], b, backward),
-                       args.repeats if b == "fused" else min(args.repeats, 3)) for b in ("torch", "fused")}
+    ms = {b: time_medians([lambda b=b: project_rig(scene, rig[:n_cams], b, backward)],
+                          args.repeats if b == "fused" else min(args.repeats, 3))[0].wall_ms
+          for b in ("torch", "fused")}
     return f"{label} {ms['torch']:.1f} | {ms['fused']:.1f} | {ms['torch'] / ms['fused']:.1f}x |"
 
 

@@ -218,6 +218,19 @@ def _covariance_sqrt(qw: float, qx: float, qy: float, qz: float, s: np.ndarray, 
 
 
 @numba.njit(inline="always", cache=True)
+def _load_row(g: int, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, rot: np.ndarray, k: int,
+              xyz: np.ndarray, q: np.ndarray, s: np.ndarray, R: np.ndarray, L: np.ndarray, sig: np.ndarray) -> None:
+    """Row ``k`` of a chunk's per-Gaussian state from Gaussian ``g``: centre ``xyz``, unit quaternion and its input
+    norm ``q``, scales ``s``, ``R(q)``, ``L = rot R(q) diag(s)`` and the largest scale ``sig``."""
+    xyz[k, 0], xyz[k, 1], xyz[k, 2] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+    q[k, 0], q[k, 1], q[k, 2], q[k, 3], q[k, 4] = _unit_quaternion(quats[g])
+    for j in range(3):
+        s[k, j] = math.exp(float(log_scales[g, j]))
+    sig[k] = max(s[k, 0], s[k, 1], s[k, 2])
+    _covariance_sqrt(q[k, 0], q[k, 1], q[k, 2], q[k, 3], s[k], rot, R[k], L[k])
+
+
+@numba.njit(inline="always", cache=True)
 def _sigma_points(model: int, lens: np.ndarray, opts: np.ndarray, x: float, y: float, z: float,
                   L: np.ndarray, zs: np.ndarray, uvj: np.ndarray, jac: bool) -> None:
     """Project ``mu + L z_p`` for every row of ``zs``: ``uvj[p] = (u, v[, du/dp, dv/dp])``."""
@@ -521,18 +534,12 @@ def _forward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray, 
                    out_depths: np.ndarray, out_radii: np.ndarray, out_valid: np.ndarray) -> None:
     """``forward`` for the rows ``start:stop`` of ``index`` (one thread's chunk), through ``footprints``."""
     m = stop - start
-    R, s = np.empty((3, 3)), np.empty(3)
-    xyz, L, sig = np.empty((m, 3)), np.empty((m, 3, 3)), np.empty(m)
+    xyz, q, s, R, L, sig = (np.empty((m, 3)), np.empty((m, 5)), np.empty((m, 3)), np.empty((m, 3, 3)),
+                            np.empty((m, 3, 3)), np.empty(m))
     pts, uv, uv19 = np.empty((3, N_UT * m)), np.empty((2, N_UT * m)), np.empty((z19.shape[0], 8))
     mom, foot, valid = np.empty((3, 5)), np.empty((7, m)), np.empty(m, np.bool_)
     for i in range(m):
-        g = index[start + i]
-        xyz[i, 0], xyz[i, 1], xyz[i, 2] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        qw, qx, qy, qz, _ = _unit_quaternion(quats[g])
-        for j in range(3):
-            s[j] = math.exp(float(log_scales[g, j]))
-        sig[i] = max(s[0], s[1], s[2])
-        _covariance_sqrt(qw, qx, qy, qz, s, rot, R, L[i])
+        _load_row(index[start + i], means, quats, log_scales, rot, i, xyz, q, s, R, L, sig)
     footprints(model, lens, opts, m, xyz, L, sig, z7, wm7, wc7, z19, wm19, wc19, pts, uv, uv19, mom, foot, valid)
     for i in range(m):
         a, b, c = foot[2, i], foot[3, i], foot[4, i]
@@ -582,14 +589,8 @@ def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray,
                 and g_conics[i, 2] == 0.0 and g_cov2d[i, 0] == 0.0 and g_cov2d[i, 1] == 0.0
                 and g_cov2d[i, 2] == 0.0 and g_depths[i] == 0.0):
             continue   # drawn nowhere (occluded, or culled by the rasterizer): its gradients stay 0, as zeroed
-        g = index[i]
         rows[m] = i
-        xyz[m, 0], xyz[m, 1], xyz[m, 2] = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        q[m, 0], q[m, 1], q[m, 2], q[m, 3], q[m, 4] = _unit_quaternion(quats[g])
-        for j in range(3):
-            s[m, j] = math.exp(float(log_scales[g, j]))
-        sig[m] = max(s[m, 0], s[m, 1], s[m, 2])
-        _covariance_sqrt(q[m, 0], q[m, 1], q[m, 2], q[m, 3], s[m], rot, R[m], L[m])
+        _load_row(index[i], means, quats, log_scales, rot, m, xyz, q, s, R, L, sig)
         m += 1
     _sigma_batch(xyz, L, z7, m, pts)
     project_batch(model, lens, opts[AXIS_EPS], opts[TINY], pts, uvj, N_UT * m, True)
