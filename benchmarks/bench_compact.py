@@ -3,11 +3,11 @@
 For each budget of ``BUDGETS`` (fixed before any run; ``--budgets`` for others) four compact scenes are made
 from one measurement (``parksim.compact.measure_bundle``): ranked by largest blending weight and by benefit-cost
 (training-view summed weight per Gaussian-pixel pair), each with and without ``--finetune`` steps
-(``recon.finetune``); the control is the whole scene fine-tuned the same way. No visibility grid unless
+(``parksim.recon.finetune``); the control is the whole scene fine-tuned the same way. No visibility grid unless
 ``--cell-budget`` is below 1, SH tolerance ``--sh-tolerance``.
 Each is served as ``parksim serve`` does it, by ``LocalSim``: latency is a four-camera render (no BEV, scale 1)
 at the dataset's test poses, all variants and the uncompacted bundle timed alternately in one process
-(median over repeats after a warm-up; wall and process CPU). PSNR is ``recon.evaluate``'s on the Gaussians
+(median over repeats after a warm-up; wall and process CPU). PSNR is ``parksim.recon.evaluate``'s on the Gaussians
 served at each pose (each view through the bundle's camera response, over the camera's scene mask) on the test
 frames and, when ``DATA/offpath`` exists (``parksim offpath DATA``), on every ``--offpath-stride``-th off-path
 frame.
@@ -31,12 +31,12 @@ import torch
 
 from parksim import bundle as bundle_io
 from parksim.bench.common import cpu_model
-from parksim.client import LocalSim
 from parksim.compact import CompactOptions, Measurement, measure_bundle, reduce_bundle
 from parksim.data import DatasetReader
-from recon.evaluate import evaluate_views
-from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
-from recon.response import CameraResponse
+from parksim.recon.evaluate import evaluate_views
+from parksim.recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
+from parksim.recon.response import CameraResponse
+from parksim.sim import LocalSim
 
 BUDGETS = (0.5, 0.35, 0.25, 0.15)
 """Fractions of the scene kept, decided before the first run."""

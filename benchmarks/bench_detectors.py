@@ -18,10 +18,10 @@ from pathlib import Path
 import torch
 
 from parksim.bench.common import cpu_model
-from recon.detectors import load_detector
-from recon.detectors.evaluate import MatchOptions, evaluate_folder
-from recon.detectors.protocols import ParkSimProtocol
-from recon.detectors.train import TrainOptions, train_detector
+from parksim.recon.detectors import load_detector
+from parksim.recon.detectors.evaluate import MatchOptions, evaluate_folder
+from parksim.recon.detectors.protocols import ParkSimProtocol
+from parksim.recon.detectors.train import TrainOptions, train_detector
 
 
 def _train(arch: str, data: list[Path], models: Path, stages: list[int], init: Path | None, seed: int,

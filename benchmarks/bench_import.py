@@ -6,7 +6,7 @@ PSNR (``parksim synth tiny``, 300 photometric iterations, seed 0, the tiny sched
 scaled to 300 iterations, random init and no pose refinement: see ``config``): the dataset reconstructed as it is,
 and again after a round trip
 through a rig log of mp4v videos (OpenCV YAML calibration + extrinsics, poses.csv at the frame times; the writers
-of tests/test_import_rig_log.py) imported by the CLI; both bundles scored by ``recon.evaluate.evaluate_bundle``
+of tests/test_import_rig_log.py) imported by the CLI; both bundles scored by ``parksim.recon.evaluate.evaluate_bundle``
 against the ORIGINAL dataset's test frames, so the video's compression shows in the second.
 
 Time: a 100-frame, 4-camera synth (the tiny garage at 320x240, 10 Hz) written as a rig log and imported from PNG
@@ -77,7 +77,7 @@ def psnr_to(a: Path, b: Path) -> float:
 
 def reconstruct_and_score(data: Path, original: Path, out: Path, cfg: Path) -> dict:
     """Reconstruct ``data`` and score the bundle on ``original``'s test frames; wall time of the training."""
-    from recon.evaluate import evaluate_bundle
+    from parksim.recon.evaluate import evaluate_bundle
 
     start = time.perf_counter()
     assert main(["reconstruct", str(data), "-o", str(out), "--config", str(cfg)]) == 0
@@ -171,7 +171,7 @@ off, since the rig log carries the synth's exact poses) from the dataset itself,
 (OpenCV YAML + extrinsics, poses.csv, one
 `{r['fourcc']}` .mp4 per camera written by cv2.VideoWriter at 10 fps; this OpenCV build's FFmpeg writer has no
 H.264/HEVC encoder and ignores VIDEOWRITER_PROP_QUALITY, so the backend's default quality) imported with
-`parksim import rig-log --video ...`. Both bundles are scored by `recon.evaluate.evaluate_bundle` against the
+`parksim import rig-log --video ...`. Both bundles are scored by `parksim.recon.evaluate.evaluate_bundle` against the
 **original** dataset's test images.
 
 | training data | test PSNR (dB) vs original | test SSIM | training wall (s) |

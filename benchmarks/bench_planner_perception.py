@@ -30,8 +30,8 @@ from parksim.env import ParkingEnv  # noqa: E402
 from parksim.planners import run_episode  # noqa: E402
 from parksim.planners.perception import PerceptionParker, run_perception_episode  # noqa: E402
 from parksim.planners.slot_data import write_training_bevs  # noqa: E402
-from recon.detectors import load_detector  # noqa: E402
-from recon.detectors.train import TrainOptions, train_detector  # noqa: E402
+from parksim.recon.detectors import load_detector  # noqa: E402
+from parksim.recon.detectors.train import TrainOptions, train_detector  # noqa: E402
 from sim_fixtures import make_bundle  # noqa: E402
 
 

@@ -31,11 +31,11 @@ import yaml
 
 from parksim.cli import main as cli_main
 from parksim.data import DatasetReader
+from parksim.recon.config import PRESETS_DIR
+from parksim.recon.evaluate import evaluate_bundle
+from parksim.recon.pose_refine import pose_error, so3xr3
+from parksim.recon.reconstruct import reconstruct
 from parksim.rig import Rig
-from recon.config import PRESETS_DIR
-from recon.evaluate import evaluate_bundle
-from recon.pose_refine import pose_error, so3xr3
-from recon.reconstruct import reconstruct
 
 EGO_CM, EGO_DEG, EXT_CM, EXT_DEG, SEED, CAMERA = 5.0, 0.5, 2.0, 0.3, 0, "front"
 FRAMES = 30

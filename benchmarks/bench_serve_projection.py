@@ -24,8 +24,8 @@ from bench_compact import xy_yaw
 
 from parksim import bundle as bundle_io
 from parksim.bench.common import cpu_model, time_medians
-from parksim.client import LocalSim
 from parksim.data import DatasetReader
+from parksim.sim import LocalSim
 
 
 def main() -> None:

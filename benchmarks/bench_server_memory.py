@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from parksim.bench.common import load_average, meta_lines, metadata  # noqa: E402
 from parksim.bench.procs import free_port, rss_mib  # noqa: E402
-from parksim.client import LocalSim  # noqa: E402
-from server import Settings  # noqa: E402
+from parksim.server import Settings  # noqa: E402
+from parksim.sim import LocalSim  # noqa: E402
 from sim_fixtures import make_bundle  # noqa: E402
 
 MIB = 2**20

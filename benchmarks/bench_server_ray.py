@@ -5,7 +5,7 @@ and Serve cost; writes benchmarks/RESULTS_ray_serve.md.
 The scene is the one of bench_server.py: a 2e5-Gaussian bundle on the surfaces of synthetic garage ``scene1``, 4 x
 640x480 fisheye views and the 600x600 BEV at scale 1. Every configuration gets the same requests (each client's
 poses come from its own seed) for ``--duration`` seconds. Ray runs in this process as ``parksim serve --ray`` runs it
-(``server.ray_serve``: local instance, no dashboard, Serve's proxy on 127.0.0.1).
+(``parksim.server.ray_serve``: local instance, no dashboard, Serve's proxy on 127.0.0.1).
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from fastapi import FastAPI  # noqa: E402
 from ray import serve  # noqa: E402
 
 from parksim.bench.procs import free_port, rss_mib, serve_bundle  # noqa: E402
-from server import Settings  # noqa: E402
-from server.ray_serve import APP_NAME, QUIET, Scaling, SimReplica, application  # noqa: E402
+from parksim.server import Settings  # noqa: E402
+from parksim.server.ray_serve import APP_NAME, QUIET, Scaling, SimReplica, application  # noqa: E402
 from sim_fixtures import make_bundle  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")

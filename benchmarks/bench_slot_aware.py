@@ -2,7 +2,7 @@
 
 For each scene: train the photometric bundle with the ``cpu_fast`` preset (or reuse it), start every run's
 slot-aware phase from it (the ``cpu_slot_aware`` preset with the run's variant and guide detector), then
-``recon.paper_eval`` scores all of them and this writes ``benchmarks/RESULTS_slot_aware.md``: the schedule,
+``parksim.recon.paper_eval`` scores all of them and this writes ``benchmarks/RESULTS_slot_aware.md``: the schedule,
 timings, the paper-style tables and the issue's targets with the numbers that decide them.
 
 Runs: the full variant guided by each detector, the ablation variants guided by ``--guide``, and a control
@@ -27,12 +27,12 @@ from pathlib import Path
 import torch
 
 from parksim.commands.eval import parse_detector
-from recon.config import TrainConfig, dump_config, load_config
-from recon.detectors import DecodeOptions
-from recon.paper_eval import VARIANT_TITLES, evaluate_runs
-from recon.paper_tables import DETECTOR_TITLES, tables_markdown
-from recon.reconstruct import reconstruct
-from recon.slot_aware import DetectorRef, Variant
+from parksim.recon.config import TrainConfig, dump_config, load_config
+from parksim.recon.detectors import DecodeOptions
+from parksim.recon.paper_eval import VARIANT_TITLES, evaluate_runs
+from parksim.recon.paper_tables import DETECTOR_TITLES, tables_markdown
+from parksim.recon.reconstruct import reconstruct
+from parksim.recon.slot_aware import DetectorRef, Variant
 
 ROOT = Path(__file__).resolve().parents[1]
 ABLATION = (Variant.DIRECT_IPM, Variant.FEATURE_ONLY, Variant.TEACHER_ONLY, Variant.STUDENT_ONLY)

@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def resumed_trainer(run: Path, dataset: Path, scratch: Path) -> Any:
     """A ``Trainer`` at the run's last checkpoint with its photometric phase extended (every step photometric)."""
     from parksim.data import DatasetReader
-    from recon.checkpoint import checkpoint_path, load_checkpoint
-    from recon.config import load_config
-    from recon.trainer import Trainer
+    from parksim.recon.checkpoint import checkpoint_path, load_checkpoint
+    from parksim.recon.config import load_config
+    from parksim.recon.trainer import Trainer
 
     config = load_config(run / "config.yaml")
     config = config.model_copy(update={"photometric": config.photometric.model_copy(update={"iterations": 10**9})})

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import torch
 
-from recon.bev_draw import WHITE, draw_detections, draw_labels
-from recon.detectors import load_detector
-from recon.detectors.dataset import BEVItem, iter_items
+from parksim.recon.bev_draw import WHITE, draw_detections, draw_labels
+from parksim.recon.detectors import load_detector
+from parksim.recon.detectors.dataset import BEVItem, iter_items
 
 
 def panel(item: BEVItem, model: torch.nn.Module, title: str) -> np.ndarray:

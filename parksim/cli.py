@@ -74,11 +74,13 @@ def describe(error: BaseException) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one ``parksim`` command; every expected error is one line on stderr and exit status 2."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
         args = build_parser().parse_args(argv)
     except UsageError as e:
         print(e, file=sys.stderr)
         return 2
+    args.argv = argv   # the command line as typed, for the records that must say how they were made
     try:
         return int(args._run(args) or 0)
     except Exception as e:

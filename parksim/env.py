@@ -22,7 +22,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .client import Frame, LocalSim, RemoteSim
+from .client import RemoteSim
+from .frames import Frame
+from .sim import LocalSim
 from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, step, wrap_angle
 
 __all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error", "to_controls", "to_action",

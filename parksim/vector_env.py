@@ -18,8 +18,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 
-from .client import Frame, RemoteSim
+from .client import RemoteSim
 from .env import ParkingEnv
+from .frames import Frame
 
 __all__ = ["RayVectorEnv", "BatchRenderVectorEnv", "EnvHost", "make_vector_env", "BACKENDS"]
 

@@ -17,7 +17,7 @@ ray = pytest.importorskip("ray")
 
 from parksim.bundle import load  # noqa: E402
 from parksim.cli import main as cli_main  # noqa: E402
-from recon.reconstruct import reconstruct  # noqa: E402
+from parksim.recon.reconstruct import reconstruct  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -134,7 +134,7 @@ def test_without_ray_batch_says_install_the_extra(datasets, tmp_path, monkeypatc
 
 def test_reconstruct_and_the_cli_do_not_import_ray() -> None:
     """``batch`` is registered, yet building the CLI and importing the trainer leave Ray unimported."""
-    code = ("import sys; import parksim.cli as cli, recon.reconstruct; cli.build_parser(); "
+    code = ("import sys; import parksim.cli as cli, parksim.recon.reconstruct; cli.build_parser(); "
             "assert 'batch' in cli.COMMANDS; assert 'ray' not in sys.modules, 'ray imported'")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert done.returncode == 0, done.stderr

@@ -13,7 +13,6 @@ from plyfile import PlyData, PlyElement
 
 from parksim import bundle as bundle_io
 from parksim.cli import build_parser, main
-from parksim.client import LocalSim
 from parksim.commands.bundle import read_transform
 from parksim.env import ParkingEnv
 from parksim.gaussians import GaussianScene
@@ -23,6 +22,7 @@ from parksim.ply_3dgs import FRAMES, T_parksim_ply, read_ply, similarity_parts, 
 from parksim.render import render
 from parksim.render.sh import eval_sh, sh_basis
 from parksim.sh_rotation import rotate_sh
+from parksim.sim import LocalSim
 from parksim.synth.presets import get_preset
 from parksim.synth.rig import avm_rig
 from sim_fixtures import garage_scene

@@ -20,7 +20,7 @@ import httpx
 import pytest
 
 from parksim.cli import describe, main
-from recon.config import dump_config, load_config
+from parksim.recon.config import dump_config, load_config
 from sim_fixtures import make_bundle
 
 PARKSIM = str(Path(sys.executable).with_name("parksim"))
@@ -254,7 +254,7 @@ def test_describe_maps_expected_errors_to_one_line(error, line):
 
 
 def test_describe_folds_pydantic_errors():
-    from server import Settings
+    from parksim.server import Settings
 
     with pytest.raises(ValueError) as raised:
         Settings(workers=0, queue_size=-1)

@@ -10,7 +10,6 @@ import torch
 
 from parksim import bundle as bundle_io
 from parksim.cli import main
-from parksim.client import LocalSim
 from parksim.compact import (
     CompactOptions,
     lower_sh,
@@ -22,14 +21,15 @@ from parksim.compact import (
 )
 from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
+from parksim.recon.config import load_config
+from parksim.recon.evaluate import evaluate_views
+from parksim.recon.finetune import finetune
+from parksim.recon.trainer import Trainer
 from parksim.render import render
 from parksim.render.rasterize.contribution import max_weights
 from parksim.render.rasterize.reference import max_weights_reference
 from parksim.render.sh import eval_sh
-from recon.config import load_config
-from recon.evaluate import evaluate_views
-from recon.finetune import finetune
-from recon.trainer import Trainer
+from parksim.sim import LocalSim
 from sim_fixtures import make_bundle
 from tolerances import f32_ulp
 
@@ -300,8 +300,8 @@ def test_cli_fine_tunes_with_the_dataset_and_needs_one(garage, tiny_data, tmp_pa
 
 def test_finetuning_renders_at_the_full_sh_degree_from_its_first_step():
     """A fine-tuned scene already has its SH degree: no ramp from 0 (the training schedule's) on its first steps."""
-    from recon.finetune import finetune_config
-    from recon.schedule import sh_degree_at
+    from parksim.recon.finetune import finetune_config
+    from parksim.recon.schedule import sh_degree_at
 
     ph = finetune_config(load_config("tiny"), 300, 3).photometric
     assert [sh_degree_at(step, ph.sh_degree_interval, ph.sh_degree) for step in (0, 1, 2, 299)] == [3, 3, 3, 3]

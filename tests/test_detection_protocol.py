@@ -15,12 +15,20 @@ import pytest
 import scipy.io
 import torch
 
-from recon.detectors import DecodeOptions, Detections, LabelError, MarkingPoint, Slot, SlotLabels, read_ps2_labels
-from recon.detectors.backbone import PointMaps
-from recon.detectors.decode import decode_points
-from recon.detectors.evaluate import Evaluator, Metrics
-from recon.detectors.protocols import DMPRPSProtocol, MatchOptions, ParkSimProtocol, Protocol, get_protocol
-from recon.paper_tables import tables_markdown
+from parksim.recon.detectors import (
+    DecodeOptions,
+    Detections,
+    LabelError,
+    MarkingPoint,
+    Slot,
+    SlotLabels,
+    read_ps2_labels,
+)
+from parksim.recon.detectors.backbone import PointMaps
+from parksim.recon.detectors.decode import decode_points
+from parksim.recon.detectors.evaluate import Evaluator, Metrics
+from parksim.recon.detectors.protocols import DMPRPSProtocol, MatchOptions, ParkSimProtocol, Protocol, get_protocol
+from parksim.recon.paper_tables import tables_markdown
 
 M_PER_PX = 10.0 / 600
 PARKSIM, DMPR = ParkSimProtocol(), DMPRPSProtocol()
@@ -215,7 +223,7 @@ def test_ps2_folder_of_mat_labels_is_read_and_plain_labels_cannot_train(tmp_path
     for training (a detector learns directions and shapes from them) with a line naming the item."""
     import cv2
 
-    from recon.detectors.dataset import TrainingSet, iter_items
+    from parksim.recon.detectors.dataset import TrainingSet, iter_items
 
     cv2.imwrite(str(tmp_path / "a.jpg"), np.full((600, 600, 3), 90, np.uint8))
     scipy.io.savemat(tmp_path / "a.mat", {"marks": np.array([[151.0, 301.0], [301.0, 301.0]]),

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-import recon.detectors
-from recon.detectors import (
+import parksim.recon.detectors
+from parksim.recon.detectors import (
     DecodeOptions,
     Detections,
     DMPRDetector,
@@ -29,11 +29,11 @@ from recon.detectors import (
     load_detector,
     read_ps2_labels,
 )
-from recon.detectors.dataset import hflip, photometric, rotate
-from recon.detectors.decode import decode_points, infer_slots
-from recon.detectors.evaluate import MatchOptions, average_precision, match_points, match_slots, summarize
-from recon.detectors.targets import point_targets
-from recon.detectors.train import save_checkpoint
+from parksim.recon.detectors.dataset import hflip, photometric, rotate
+from parksim.recon.detectors.decode import decode_points, infer_slots
+from parksim.recon.detectors.evaluate import MatchOptions, average_precision, match_points, match_slots, summarize
+from parksim.recon.detectors.targets import point_targets
+from parksim.recon.detectors.train import save_checkpoint
 
 M_PER_PX = 10.0 / 600
 UP = -math.pi / 2  # direction pointing up in the image
@@ -249,7 +249,7 @@ def test_gcn_graph_without_nodes_stays_finite():
 def test_ps2_folder_feeds_training_batches(tmp_path):
     import cv2
 
-    from recon.detectors.dataset import TrainingSet, iter_items
+    from parksim.recon.detectors.dataset import TrainingSet, iter_items
 
     cv2.imwrite(str(tmp_path / "a.png"), np.full((600, 600, 3), 90, np.uint8))
     _write(tmp_path, {"marks": [[101, 201, 101, 251, 0], [251, 201, 251, 251, 1]], "slots": [[1, 2, 1, 90]]})
@@ -264,32 +264,32 @@ def test_ps2_folder_feeds_training_batches(tmp_path):
 
 
 def _sibling_imports(path: Path) -> set[str]:
-    """Modules of ``recon.detectors`` that ``path`` imports anywhere in it, inside functions too."""
+    """Modules of ``parksim.recon.detectors`` that ``path`` imports anywhere in it, inside functions too."""
     names: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom) and node.level == 1:
             names |= {node.module.split(".")[0]} if node.module else {a.name for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("recon.detectors."):
-            names.add(node.module.split(".")[2])
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("parksim.recon.detectors."):
+            names.add(node.module.split(".")[3])
         elif isinstance(node, ast.Import):
-            names |= {a.name.split(".")[2] for a in node.names if a.name.startswith("recon.detectors.")}
+            names |= {a.name.split(".")[3] for a in node.names if a.name.startswith("parksim.recon.detectors.")}
     return names
 
 
 def test_detector_modules_import_no_cycle():
     """dmpr.load_detector imported gcn (inside the function) while gcn imports dmpr: a cycle hidden until called."""
-    package = Path(recon.detectors.__file__).parent
+    package = Path(parksim.recon.detectors.__file__).parent
     graph = {f.stem: _sibling_imports(f) for f in package.glob("*.py") if f.stem != "__init__"}
     assert "dmpr" in graph["gcn"]   # the parser sees the imports
     try:
         list(graphlib.TopologicalSorter(graph).static_order())
     except graphlib.CycleError as e:
-        pytest.fail(f"import cycle in recon.detectors: {' -> '.join(e.args[1])}")
+        pytest.fail(f"import cycle in parksim.recon.detectors: {' -> '.join(e.args[1])}")
 
 
 @pytest.mark.parametrize("module", ["dmpr", "gcn", "registry"])
 def test_detector_module_imports_alone_in_a_fresh_interpreter(module):
-    code = f"import recon.detectors.{module} as m; print(sorted(m.__all__))"
+    code = f"import parksim.recon.detectors.{module} as m; print(sorted(m.__all__))"
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                          cwd=Path(__file__).resolve().parents[1])
     assert run.returncode == 0, run.stderr
@@ -299,7 +299,7 @@ def test_training_device_is_checked_before_training() -> None:
     """A device other than cpu / cuda[:N] fails at once with its name; the default trains on the CPU."""
     import pytest
 
-    from recon.detectors.train import TrainOptions
+    from parksim.recon.detectors.train import TrainOptions
 
     assert TrainOptions().device == "cpu" and TrainOptions(device="cuda:1").device == "cuda:1"
     with pytest.raises(ValueError, match="'tpu'"):

@@ -11,8 +11,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from parksim.env import MAX_EPISODE_STEPS, ParkingEnv, heading_error, slot_pose, to_action, to_controls
+from parksim.server import create_app
 from parksim.vehicle import VehicleParams, wrap_angle
-from server import create_app
 from sim_fixtures import make_bundle, running_server
 
 

@@ -12,15 +12,15 @@ import torch
 from parksim.cli import main as cli_main
 from parksim.data import DatasetReader
 from parksim.ipm import IPM
-from recon.config import dump_config, load_config
-from recon.detectors import DecodeOptions, SlotLabels, load_detector
-from recon.detectors.evaluate import MatchOptions, match_points, match_slots, summarize
-from recon.detectors.train import TrainOptions, train_detector
-from recon.paper_eval import evaluate_runs
-from recon.paper_tables import tables_markdown
-from recon.plots import read_metrics
-from recon.reconstruct import reconstruct
-from recon.slot_aware import DetectorError, DetectorRef, SlotAwareConfig
+from parksim.recon.config import dump_config, load_config
+from parksim.recon.detectors import DecodeOptions, SlotLabels, load_detector
+from parksim.recon.detectors.evaluate import MatchOptions, match_points, match_slots, summarize
+from parksim.recon.detectors.train import TrainOptions, train_detector
+from parksim.recon.paper_eval import evaluate_runs
+from parksim.recon.paper_tables import tables_markdown
+from parksim.recon.plots import read_metrics
+from parksim.recon.reconstruct import reconstruct
+from parksim.recon.slot_aware import DetectorError, DetectorRef, SlotAwareConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 PHOTOMETRIC, SLOT_AWARE = 4, 2

@@ -1,4 +1,4 @@
-"""``recon.heap.keep_freed_memory``: a large block freed and allocated again reuses mapped pages (no page faults)."""
+"""``parksim.recon.heap.keep_freed_memory``: a block freed and allocated again reuses mapped pages (no page faults)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ CYCLE = """
 import resource, sys
 import numpy as np
 if sys.argv[1] == "keep":
-    from recon.heap import keep_freed_memory
+    from parksim.recon.heap import keep_freed_memory
     assert keep_freed_memory()
 np.ones(1 << 23)   # 64 MB: over glibc's largest mmap threshold
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

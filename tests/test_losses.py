@@ -1,11 +1,11 @@
-"""The numba D-SSIM loss (``recon.losses._DSSIM``) against the torch ``ssim_map`` path in float64."""
+"""The numba D-SSIM loss (``parksim.recon.losses._DSSIM``) against the torch ``ssim_map`` path in float64."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from recon.losses import _DSSIM, SSIM_WINDOW, dssim_loss, masked_mean, ssim_map
+from parksim.recon.losses import _DSSIM, SSIM_WINDOW, dssim_loss, masked_mean, ssim_map
 
 
 def _reference(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -14,6 +14,11 @@ import pytest
 from parksim.cli import main
 from parksim.data import DatasetReader
 from parksim.data.writer import to_uint8
+from parksim.recon.config import dump_config, load_config
+from parksim.recon.detectors import DecodeOptions, load_detector
+from parksim.recon.detectors.train import TrainOptions, train_detector
+from parksim.recon.paper_eval import evaluate_runs
+from parksim.recon.reconstruct import reconstruct
 from parksim.synth import get_preset
 from parksim.synth.generate import SceneRenderer, scene_map
 from parksim.synth.layout import build_garage
@@ -29,11 +34,6 @@ from parksim.synth.offpath import (
 )
 from parksim.synth.trajectory import drive
 from parksim.vehicle import Obstacles, VehicleParams, footprint
-from recon.config import dump_config, load_config
-from recon.detectors import DecodeOptions, load_detector
-from recon.detectors.train import TrainOptions, train_detector
-from recon.paper_eval import evaluate_runs
-from recon.reconstruct import reconstruct
 
 EPS = np.finfo(np.float64).eps
 

@@ -11,8 +11,8 @@ from parksim.bundle import load
 from parksim.env import ParkingEnv
 from parksim.planners.perception import PerceptionParker, detected_slots, run_perception_episode
 from parksim.planners.slot_data import bev_labels, write_training_bevs
-from recon.detectors import Detections, DMPRDetector, MarkingPoint, Slot
-from recon.detectors.dataset import iter_items
+from parksim.recon.detectors import Detections, DMPRDetector, MarkingPoint, Slot
+from parksim.recon.detectors.dataset import iter_items
 from sim_fixtures import make_bundle
 
 

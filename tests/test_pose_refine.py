@@ -17,19 +17,19 @@ from parksim.cli import main as cli_main
 from parksim.data import DatasetReader
 from parksim.data.writer import DatasetWriter
 from parksim.gaussians import GaussianScene
+from parksim.recon.checkpoint import checkpoint_path, load_checkpoint
+from parksim.recon.config import PRESETS_DIR, PoseRefineConfig
+from parksim.recon.evaluate import evaluate_bundle
+from parksim.recon.losses import photometric_loss
+from parksim.recon.masks import scene_mask
+from parksim.recon.pose_refine import POSES_KEY, PoseCorrections, align_poses, pose_error, refinement_enabled, so3xr3
+from parksim.recon.reconstruct import reconstruct
 from parksim.render import render
 from parksim.rig import Rig, RigCamera
 from parksim.synth.layout import build_garage
 from parksim.synth.presets import get_preset
 from parksim.synth.rig import avm_rig
 from parksim.synth.trajectory import drive
-from recon.checkpoint import checkpoint_path, load_checkpoint
-from recon.config import PRESETS_DIR, PoseRefineConfig
-from recon.evaluate import evaluate_bundle
-from recon.losses import photometric_loss
-from recon.masks import scene_mask
-from recon.pose_refine import POSES_KEY, PoseCorrections, align_poses, pose_error, refinement_enabled, so3xr3
-from recon.reconstruct import reconstruct
 from sim_fixtures import garage_scene
 
 PERTURBED = "front"

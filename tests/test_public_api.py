@@ -15,9 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def public_modules() -> list[str]:
-    """Dotted names of the public modules under ``parksim/`` and ``recon/``."""
+    """Dotted names of the public modules under ``parksim/``."""
     names = []
-    for package in ("parksim", "recon"):
+    for package in ("parksim",):
         for f in sorted((ROOT / package).rglob("*.py")):
             rel = f.relative_to(ROOT)
             if any(part.startswith("_") and part != "__init__.py" for part in rel.parts):

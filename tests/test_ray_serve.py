@@ -17,8 +17,8 @@ from fastapi.testclient import TestClient
 
 from parksim.bench.procs import free_port
 from parksim.cli import main
-from parksim.client import decode_npz
-from server import Settings, create_app
+from parksim.frames import decode_npz
+from parksim.server import Settings, create_app
 from sim_fixtures import make_bundle
 
 ray = pytest.importorskip("ray")

@@ -16,15 +16,15 @@ import yaml
 
 from parksim.bundle import load
 from parksim.data import DatasetReader
-from recon.checkpoint import CheckpointError, checkpoint_path
-from recon.config import ConfigError, TrainConfig, load_config
-from recon.evaluate import evaluate_bundle, evaluate_views
-from recon.init import initial_scene
-from recon.losses import ssim_map
-from recon.plots import read_metrics
-from recon.reconstruct import reconstruct
-from recon.response import CameraResponse
-from recon.strategy_mcmc import relocation_correction
+from parksim.recon.checkpoint import CheckpointError, checkpoint_path
+from parksim.recon.config import ConfigError, TrainConfig, load_config
+from parksim.recon.evaluate import evaluate_bundle, evaluate_views
+from parksim.recon.init import initial_scene
+from parksim.recon.losses import ssim_map
+from parksim.recon.plots import read_metrics
+from parksim.recon.reconstruct import reconstruct
+from parksim.recon.response import CameraResponse
+from parksim.recon.strategy_mcmc import relocation_correction
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = "tiny"
@@ -161,7 +161,7 @@ def test_ssim_matches_kornia() -> None:
 
 
 def test_eval_report_has_slot_scores_and_no_invented_lpips(full_run: Path, tiny_data: Path, tmp_path: Path) -> None:
-    from recon.evaluate import evaluate_bundle
+    from parksim.recon.evaluate import evaluate_bundle
 
     result = evaluate_bundle(full_run, tiny_data, tmp_path / "eval")
     assert result["overall"]["psnr"] > 10 and 0 < result["overall"]["ssim"] <= 1
@@ -172,7 +172,7 @@ def test_eval_report_has_slot_scores_and_no_invented_lpips(full_run: Path, tiny_
 
 
 def test_lpips_from_weight_files(tmp_path: Path) -> None:
-    from recon.lpips import _NETS, LPIPS, LPIPSError, _features
+    from parksim.recon.lpips import _NETS, LPIPS, LPIPSError, _features
 
     g = torch.Generator().manual_seed(0)
     backbone = {f"features.{k}": torch.randn(v.shape, generator=g) * 0.1
@@ -191,7 +191,7 @@ def test_lpips_from_weight_files(tmp_path: Path) -> None:
 
 def test_similarity_alignment_recovers_a_known_transform() -> None:
     from parksim.geometry import rotation_from_quaternion
-    from recon.colmap import align_similarity
+    from parksim.recon.colmap import align_similarity
 
     g = torch.Generator().manual_seed(1)
     src = torch.randn(20, 3, generator=g, dtype=torch.float64).numpy()
@@ -203,7 +203,7 @@ def test_similarity_alignment_recovers_a_known_transform() -> None:
 
 def test_colmap_errors_are_clear(tmp_path: Path) -> None:
     pytest.importorskip("pycolmap")
-    from recon.colmap import ColmapError, read_colmap_points
+    from parksim.recon.colmap import ColmapError, read_colmap_points
 
     with pytest.raises(ColmapError, match="not found"):
         read_colmap_points(tmp_path / "none")
@@ -218,7 +218,7 @@ def test_colmap_errors_are_clear(tmp_path: Path) -> None:
                            "SfM takes ~1 min")
 def test_sfm_recovers_poses_up_to_similarity(tmp_path: Path) -> None:
     pytest.importorskip("pycolmap")
-    from recon.colmap import pose_errors, run_sfm, vehicle_poses
+    from parksim.recon.colmap import pose_errors, run_sfm, vehicle_poses
 
     data = Path(os.environ["PARKSIM_COLMAP_DATA"])
     reader = DatasetReader(data)
@@ -229,7 +229,7 @@ def test_sfm_recovers_poses_up_to_similarity(tmp_path: Path) -> None:
 
 
 def test_adc_strategy_densifies_and_keeps_optimizer_rows_aligned(tiny_data: Path, tmp_path: Path) -> None:
-    from recon.trainer import Trainer
+    from parksim.recon.trainer import Trainer
 
     base = load_config(TINY).model_dump()
     base["densify"]["strategy"] = "adc"
@@ -262,7 +262,7 @@ def test_resume_drops_a_torn_metrics_tail_and_says_so(full_run: Path, tiny_data:
 
 
 def test_a_torn_line_before_the_tail_names_the_line_and_changes_nothing(tmp_path: Path) -> None:
-    from recon.metrics_log import cut_back
+    from parksim.recon.metrics_log import cut_back
 
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"iteration": 2}\n{"iteration": 4, "lo\n{"iteration": 6}\n')
@@ -274,7 +274,7 @@ def test_a_torn_line_before_the_tail_names_the_line_and_changes_nothing(tmp_path
 
 def test_cutting_back_the_metrics_replaces_the_file(tmp_path: Path) -> None:
     """A rewrite in place that is killed would lose the kept records too; a new file is renamed over the old one."""
-    from recon.metrics_log import cut_back
+    from parksim.recon.metrics_log import cut_back
 
     path = tmp_path / "metrics.jsonl"
     path.write_text('{"iteration": 2}\n{"iteration": 4}\n{"iteration": 6}\n')
@@ -323,7 +323,7 @@ def test_a_corrupt_training_image_fails_before_training_naming_it(tiny_data: Pat
 def test_compile_notice_is_said_once_per_block_and_only_for_a_real_compile() -> None:
     import numba
 
-    from recon.compile_notice import NOTICE, compile_notice
+    from parksim.recon.compile_notice import NOTICE, compile_notice
 
     said: list[str] = []
     add, scale = numba.njit(lambda x: x + 1), numba.njit(lambda x: 2 * x)
@@ -338,7 +338,8 @@ def test_compile_notice_is_said_once_per_block_and_only_for_a_real_compile() -> 
 
 def test_compile_notice_is_quiet_when_numba_s_disk_cache_has_the_kernel(tmp_path: Path) -> None:
     (tmp_path / "kern.py").write_text("import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
-    script = "import kern\nfrom recon.compile_notice import compile_notice\nwith compile_notice():\n    kern.twice(3)\n"
+    script = ("import kern\nfrom parksim.recon.compile_notice import compile_notice\n"
+              "with compile_notice():\n    kern.twice(3)\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
     runs = [subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True,
@@ -352,8 +353,8 @@ def test_compile_notice_is_quiet_when_numba_s_disk_cache_has_the_kernel(tmp_path
 def test_strategy_registry_is_the_config_s_choice_and_an_unknown_name_is_a_config_error() -> None:
     from typing import get_args
 
-    from recon.config import DensifyConfig, parse_config
-    from recon.strategy import STRATEGIES, make_strategy
+    from parksim.recon.config import DensifyConfig, parse_config
+    from parksim.recon.strategy import STRATEGIES, make_strategy
 
     assert set(get_args(DensifyConfig.model_fields["strategy"].annotation)) == set(STRATEGIES)
     with pytest.raises(ConfigError, match=r"densify\.strategy: unknown strategy 'gmm'; choose one of mcmc, adc"):
@@ -366,8 +367,8 @@ def test_strategy_registry_is_the_config_s_choice_and_an_unknown_name_is_a_confi
 def test_every_registered_strategy_keeps_the_contract(name: str, tiny_data: Path, tmp_path: Path) -> None:
     import inspect
 
-    from recon.strategy import STRATEGIES, Strategy
-    from recon.trainer import Trainer
+    from parksim.recon.strategy import STRATEGIES, Strategy
+    from parksim.recon.trainer import Trainer
 
     cls = STRATEGIES[name]
     assert issubclass(cls, Strategy) and not inspect.isabstract(cls)
@@ -393,7 +394,7 @@ def test_slot_region_mask_equals_the_brute_force_floor_distance(tiny_data: Path)
     """Cached rays, 2 m cells and per-chunk segment culling change nothing: every pixel's ray hits the floor within
     SLOT_RADIUS of some slot edge (distance to every edge, float64) exactly where the mask says so."""
     from parksim.camera import pixel_grid
-    from recon.metrics import SLOT_RADIUS, slot_region_mask, slot_segments
+    from parksim.recon.metrics import SLOT_RADIUS, slot_region_mask, slot_segments
 
     reader = DatasetReader(tiny_data)
     segments = slot_segments(reader.map)

@@ -18,9 +18,11 @@ from hypothesis import settings as hsettings
 from hypothesis import strategies as st
 from prometheus_client.parser import text_string_to_metric_families
 
-from parksim.client import LocalSim, RemoteSim, decode_npz
-from server import Settings, create_app
-from server.auth import check_bind
+from parksim.client import RemoteSim
+from parksim.frames import decode_npz
+from parksim.server import Settings, create_app
+from parksim.server.auth import check_bind
+from parksim.sim import LocalSim
 from sim_fixtures import make_bundle, running_server
 
 POSE = "12.0,0.3,0.2"

@@ -10,10 +10,10 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from parksim.client import LocalSim
-from server import Settings, create_app
-from server.deps import get_registry, get_settings
-from server.scenes import SceneRegistry
+from parksim.server import Settings, create_app
+from parksim.server.deps import get_registry, get_settings
+from parksim.server.scenes import SceneRegistry
+from parksim.sim import LocalSim
 from sim_fixtures import make_bundle
 
 POSE = "12.0,0.3,0.2"

@@ -11,8 +11,8 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from parksim.client import LocalSim
-from server import Settings, create_app
+from parksim.server import Settings, create_app
+from parksim.sim import LocalSim
 from sim_fixtures import make_bundle, running_server
 
 SMALL = {"pose": "12,0,0", "cameras": "front", "scale": "0.25"}

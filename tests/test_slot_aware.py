@@ -9,9 +9,8 @@ import torch
 from torch import nn
 
 from parksim.ipm import IPM
-from parksim.synth.rig import avm_rig
-from recon.detectors import DMPRDetector, GCNDetector
-from recon.slot_aware import (
+from parksim.recon.detectors import DMPRDetector, GCNDetector
+from parksim.recon.slot_aware import (
     SlotAwareConfig,
     SlotAwareStep,
     SlotFrame,
@@ -28,6 +27,7 @@ from recon.slot_aware import (
     upsample,
     weighted_l1,
 )
+from parksim.synth.rig import avm_rig
 from sim_fixtures import garage_scene
 
 
@@ -223,8 +223,8 @@ def test_trainer_runs_photometric_then_slot_aware_iterations(tmp_path) -> None:
 
     from parksim.cli import main as cli_main
     from parksim.data import DatasetReader
-    from recon.config import load_config
-    from recon.trainer import METRICS_FILE, Trainer
+    from parksim.recon.config import load_config
+    from parksim.recon.trainer import METRICS_FILE, Trainer
 
     data = tmp_path / "tiny"
     assert cli_main(["synth", "tiny", "-o", str(data), "--frames", "4", "--resolution", "96x72", "--bev-px", "96",
@@ -246,8 +246,8 @@ def test_trainer_runs_photometric_then_slot_aware_iterations(tmp_path) -> None:
 
 def test_trainer_without_a_detector_keeps_the_photometric_phase(tiny_data, tmp_path) -> None:
     from parksim.data import DatasetReader
-    from recon.config import TrainConfig
-    from recon.trainer import Trainer
+    from parksim.recon.config import TrainConfig
+    from parksim.recon.trainer import Trainer
 
     notes: list[str] = []
     trainer = Trainer(DatasetReader(tiny_data), TrainConfig(), tmp_path, log=notes.append)

@@ -183,7 +183,7 @@ def mask(kind: str, h: int, w: int, g: torch.Generator) -> torch.Tensor:
 @given(image_fill, image_fill, mask_kind, st.floats(0.0, 1.0), st.integers(6, 24), st.integers(6, 24),
        st.integers(0, 2**31 - 1))
 def test_losses_are_finite_with_finite_gradients_and_float32_agrees(pred_fill, gt_fill, mask_of, lam, h, w, seed):
-    from recon.losses import photometric_loss
+    from parksim.recon.losses import photometric_loss
 
     g = torch.Generator().manual_seed(seed)
     pred64, gt64, m64 = image(pred_fill, h, w, g), image(gt_fill, h, w, g), mask(mask_of, h, w, g)

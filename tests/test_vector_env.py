@@ -12,8 +12,8 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector.utils import batch_space
 
 from parksim.env import ParkingEnv
+from parksim.server import create_app
 from parksim.vector_env import BatchRenderVectorEnv, RayVectorEnv, make_vector_env
-from server import create_app
 from sim_fixtures import make_bundle, running_server
 
 ray = pytest.importorskip("ray")

@@ -18,12 +18,13 @@ import numpy as np
 import pytest
 
 from parksim import bundle as bundle_io
-from parksim.client import LocalSim, decode_npz
+from parksim.frames import decode_npz
+from parksim.server import Settings, create_app
+from parksim.sim import LocalSim
 from parksim.synth.layout import build_garage
 from parksim.synth.presets import get_preset
 from parksim.synth.trajectory import drive
 from parksim.vehicle import VehicleParams
-from server import Settings, create_app
 from sim_fixtures import make_bundle, running_server
 
 webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (pip install selenium)")

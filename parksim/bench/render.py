@@ -136,7 +136,7 @@ class GroundTruth:
     """PSNR of a bundle's renders against the dataset's images at one frame, through the learned camera response."""
 
     def __init__(self, dataset: Path, frame: int, rig: Rig) -> None:
-        from recon.masks import scene_mask
+        from parksim.recon.masks import scene_mask
 
         reader = DatasetReader(dataset)
         self.images = {c: reader.image(c, frame) for c in rig.names}
@@ -145,8 +145,8 @@ class GroundTruth:
 
     def psnr(self, images: dict[str, torch.Tensor], bundle: Bundle) -> float:
         """Mean over the rendered cameras of the masked PSNR (the bundle's response applied when it has one)."""
-        from recon.metrics import psnr
-        from recon.response import CameraResponse
+        from parksim.recon.metrics import psnr
+        from parksim.recon.response import CameraResponse
 
         response = None
         if "camera_response" in bundle.meta:

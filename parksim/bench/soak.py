@@ -26,7 +26,7 @@ __all__ = ["soak_train", "soak_server"]
 
 def _soak_config(config: str, steps: int) -> Any:
     """``config`` stretched to ``steps`` photometric iterations with densification running to the end."""
-    from recon.config import load_config
+    from parksim.recon.config import load_config
 
     cfg = load_config(config)
     d = cfg.densify
@@ -47,7 +47,7 @@ def _finite_params(trainer: Any) -> bool:
 
 def soak_train(args: argparse.Namespace) -> Any:
     """Train ``--steps`` iterations (or until ``--max-seconds``); write ``soak_train.json/md/png``."""
-    from recon.trainer import Trainer
+    from parksim.recon.trainer import Trainer
 
     from ..data import DatasetReader
 

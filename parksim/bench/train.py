@@ -38,7 +38,7 @@ def ensure_dataset(scene: str, data_root: Path, resolution: str | None) -> Path:
 
 def _config_with_eval(config: str, out: Path) -> Path:
     """``config`` with periodic evaluation switched on (a fifth of the run) and no progress bar, written to ``out``."""
-    from recon.config import dump_config, load_config
+    from parksim.recon.config import dump_config, load_config
 
     cfg = load_config(config)
     every = cfg.run.eval_every or max(1, cfg.photometric.iterations // 5)
@@ -72,7 +72,7 @@ def _evaluation(out: Path, data: Path, reuse: bool) -> dict[str, Any]:
     this dataset (and, if the dataset has an off-path split, with it), else computed and written there."""
     import json
 
-    from recon.evaluate import evaluate_bundle
+    from parksim.recon.evaluate import evaluate_bundle
 
     from ..synth.offpath import OFFPATH_DIR, OFFPATH_FILE
 
@@ -92,8 +92,8 @@ def train_one(scene: str, data: Path, config: str, out: Path, reuse: bool = Fals
     import os
     import shutil
 
-    from recon.plots import read_metrics
-    from recon.reconstruct import reconstruct
+    from parksim.recon.plots import read_metrics
+    from parksim.recon.reconstruct import reconstruct
 
     from ..bundle import load
 

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 from .argtypes import integer, number
 
 if TYPE_CHECKING:
-    from recon.batch import Outcome
+    from parksim.recon.batch import Outcome
 
 __all__ = ["add_parser", "run", "summary_table"]
 
@@ -58,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
         import ray  # noqa: F401
     except ImportError:
         raise ValueError("Ray is not installed: install parksim[ray]") from None
-    from recon.batch import plan_scenes, ray_session, run_batch
-    from recon.config import load_config
+    from parksim.recon.batch import plan_scenes, ray_session, run_batch
+    from parksim.recon.config import load_config
 
     from .outputs import check_output_folder
 

@@ -46,7 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run the chosen mode and print its report as JSON."""
     from parksim.data import DatasetLayout, DatasetReader
-    from recon.colmap import import_model, pose_errors, run_sfm, vehicle_poses
+    from parksim.recon.colmap import import_model, pose_errors, run_sfm, vehicle_poses
 
     from .outputs import check_output_folder
 

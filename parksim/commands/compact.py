@@ -39,7 +39,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "needs the dataset)")
     p.add_argument("--finetune", type=integer(0), default=None, metavar="N",
                    help="photometric steps on the bundle's training views after pruning, Gaussian count fixed "
-                        "(default 300, recon.finetune.FINETUNE_ITERATIONS; 0: none, no dataset needed)")
+                        "(default 300, parksim.recon.finetune.FINETUNE_ITERATIONS; 0: none, no dataset needed)")
     p.add_argument("--dataset", type=Path,
                    help="the training dataset folder (default: the one bundle.json records); read by the "
                         "benefit-cost ranking and --finetune")
@@ -64,7 +64,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Check the arguments, compact, write OUTPUT atomically and print a summary."""
-    from recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
+    from parksim.recon.finetune import FINETUNE_ITERATIONS, bundle_config, finetune
 
     from ..bundle import load, save
     from ..compact import CompactOptions, compact_bundle

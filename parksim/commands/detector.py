@@ -63,7 +63,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def _train(args: argparse.Namespace) -> int:
-    from recon.detectors.train import TrainOptions, train_detector
+    from parksim.recon.detectors.train import TrainOptions, train_detector
 
     from .outputs import check_output_folder
 
@@ -79,9 +79,9 @@ def _train(args: argparse.Namespace) -> int:
 def _eval(args: argparse.Namespace) -> int:
     import torch
 
-    from recon.detectors import DecodeOptions, load_detector
-    from recon.detectors.evaluate import MatchOptions, evaluate_folder
-    from recon.detectors.protocols import get_protocol
+    from parksim.recon.detectors import DecodeOptions, load_detector
+    from parksim.recon.detectors.evaluate import MatchOptions, evaluate_folder
+    from parksim.recon.detectors.protocols import get_protocol
 
     from ..fileio import write_json
     from .outputs import check_output_file

@@ -66,10 +66,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 
 def _tables(args: argparse.Namespace, out: Path) -> int:
-    from recon.detectors import DecodeOptions
-    from recon.detectors.protocols import get_protocol
-    from recon.paper_eval import evaluate_runs
-    from recon.slot_aware import DetectorRef
+    from parksim.recon.detectors import DecodeOptions
+    from parksim.recon.detectors.protocols import get_protocol
+    from parksim.recon.paper_eval import evaluate_runs
+    from parksim.recon.slot_aware import DetectorRef
 
     from ..fileio import atomic_files
 
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         if args.projection is not None:
             raise ValueError("--projection applies to one SCENE without --detector")
         return _tables(args, out)
-    from recon.evaluate import evaluate_bundle
+    from parksim.recon.evaluate import evaluate_bundle
 
     from ..fileio import atomic_files
 
@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     if (args.lpips_backbone is None) != (args.lpips_weights is None):
         raise ValueError("LPIPS needs both --lpips-backbone and --lpips-weights")
     if args.lpips_backbone is not None:
-        from recon.lpips import LPIPS
+        from parksim.recon.lpips import LPIPS
 
         lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights)
     scene = args.scenes[0][0]

@@ -31,7 +31,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Train (or resume) and write the bundle."""
-    from recon.reconstruct import reconstruct
+    from parksim.recon.reconstruct import reconstruct
 
     from .outputs import check_output_folder
 

@@ -91,8 +91,8 @@ def bind(host: str, port: int) -> list[socket.socket]:
 
 def run(args: argparse.Namespace) -> int:
     """Validate the settings and bind policy, bind the port, load the scenes, serve until interrupted."""
-    from server import Settings, create_app
-    from server.auth import check_bind
+    from parksim.server import Settings, create_app
+    from parksim.server.auth import check_bind
 
     settings = Settings.from_env(api_key=args.api_key, workers=args.workers, queue_size=args.queue_size,
                                  max_scale=args.max_scale, max_batch=args.max_batch,
@@ -124,7 +124,7 @@ def _run_ray(args: argparse.Namespace, settings: Any) -> int:
     """Deploy on Ray Serve (a local Ray instance, or the cluster at ``--address``) and serve until Ctrl-C or
     SIGTERM, then take the deployment (and a Ray this process started) down."""
     try:
-        from server import ray_serve
+        from parksim.server import ray_serve
     except ModuleNotFoundError as e:
         if e.name != "ray" and not str(e.name).startswith("ray."):
             raise

@@ -3,7 +3,7 @@
 Poses are sampled in the drivable area of the bundle's map (``poses``); each Gaussian's largest blending
 weight per grid cell and the Gaussian-pixel pairs it costs there are measured (``measure``), with its summed
 weight over the training views (``benefit``) when the ranking needs it; the scene is reduced from those
-(``reduce``), optionally fine-tuned in between (a ``tune`` callback: ``recon.finetune`` in the CLI).
+(``reduce``), optionally fine-tuned in between (a ``tune`` callback: ``parksim.recon.finetune`` in the CLI).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 No world pose is used. The planner works in its odometry frame (the ego frame at the episode's start) and
 tracks the ego there by dead reckoning: the commanded actions integrated with the env's kinematic model
-(``parksim.vehicle.step``). Every ``every`` steps it takes a BEV, detects slots (``recon.detectors``), turns
+(``parksim.vehicle.step``). Every ``every`` steps it takes a BEV, detects slots (``parksim.recon.detectors``), turns
 them into ground rectangles in the odometry frame (entrance from the two marking points, depth by slot kind)
 and picks the one nearest the target the env names in the ego frame (``state[2:4]``, read only to say which
 slot: the geometry parked into is the detected one). It replans with ``GeometricParker.plan`` when the
@@ -45,7 +45,7 @@ class SlotDepths:
 def detected_slots(detections: Any, spec: BEVSpec, depths: SlotDepths = SlotDepths()) -> list[np.ndarray]:
     """Corners ``(4, 2)`` in the vehicle frame of each detected slot, ordered as the map's: entrance p1, p2, then in.
 
-    ``detections`` is one ``recon.detectors.Detections`` of a BEV with ``spec``. The separator direction is the
+    ``detections`` is one ``parksim.recon.detectors.Detections`` of a BEV with ``spec``. The separator direction is the
     mean of the two points' image directions, mapped to the vehicle frame (image (du, dv) = vehicle (-dy, -dx)).
     """
     out = []
@@ -82,7 +82,7 @@ def _inner_box(corners: np.ndarray, skip: float) -> dict[str, Any]:
 class PerceptionParker:
     """Detect, dead-reckon, plan and track; ``start`` with the first observation, then ``act`` every step.
 
-    ``detector`` is a trained ``recon.detectors`` model (``detect(bev, m_per_px)``); ``spec`` the env's BEV.
+    ``detector`` is a trained ``parksim.recon.detectors`` model (``detect(bev, m_per_px)``); ``spec`` the env's BEV.
     """
 
     detector: Any

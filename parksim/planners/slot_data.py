@@ -2,8 +2,8 @@
 
 The simulator's own BEVs (IPM of the bundle's rendered fisheye views) differ from the sharp ray-traced
 BEVs of ``parksim synth``, so the perception planner's detector is trained on them. Each BEV is written
-as a ps2.0-style pair (``NAME.png`` + ``NAME.json``, see ``recon.detectors.labels_ps2``), the format
-``parksim detector train`` and ``recon.detectors.train.train_detector`` read. The labels are the map's
+as a ps2.0-style pair (``NAME.png`` + ``NAME.json``, see ``parksim.recon.detectors.labels_ps2``), the format
+``parksim detector train`` and ``parksim.recon.detectors.train.train_detector`` read. The labels are the map's
 marking points and slots projected into the BEV, so this needs the map (offline, as any labelling does);
 the planner that uses the trained detector sees only the rendered images.
 """
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..client import LocalSim
 from ..fileio import atomic_directory
 from ..rig import BEVSpec
+from ..sim import LocalSim
 from ..vehicle import Obstacles, VehicleParams, wrap_angle
 
 __all__ = ["training_poses", "bev_labels", "write_training_bevs"]

@@ -12,7 +12,8 @@ from typing import Literal
 
 import numpy as np
 
-from parksim.client import Frame, LocalSim, RequestError, encode_npz
+from parksim.frames import Frame, RequestError, encode_npz
+from parksim.sim import LocalSim
 
 from .budget import ReplyTooLarge
 from .pool import RenderPool

@@ -5,9 +5,9 @@ the camera's learned response, and minimises (1 - lambda) L1 + lambda D-SSIM ove
 mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the densification strategy
 (MCMC by default) runs after each step. When ``slot_aware.iterations`` > 0 and a detector is configured
 (``slot_aware.detector``, or one passed in; the ``direct_ipm`` variant needs none), the slot-aware phase follows:
-each iteration renders the four cameras of a random train frame and minimises ``recon.slot_aware``'s
+each iteration renders the four cameras of a random train frame and minimises ``parksim.recon.slot_aware``'s
 L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rate schedule (``schedule_iterations``).
-With pose refinement on (``pose_opt``, ``recon.pose_refine``) the photometric phase also trains a correction per
+With pose refinement on (``pose_opt``, ``parksim.recon.pose_refine``) the photometric phase also trains a correction per
 frame's ego pose (per image for per-image datasets) and per camera's extrinsics; the slot-aware phase keeps them.
 """
 
@@ -69,7 +69,7 @@ class Trainer:
 
     Args:
         reader: the dataset (rig, poses, images, split); training views are every (train frame, camera).
-        config: the validated run config (``recon.config.load_config``).
+        config: the validated run config (``parksim.recon.config.load_config``).
         out_dir: the run folder; checkpoints go to ``out_dir/checkpoints``, metrics to ``out_dir/metrics.jsonl``.
         log: one-line progress messages (``print`` by default).
         detector: slot detector guiding the slot-aware phase (needed only when ``config.slot_aware.iterations``).

@@ -19,7 +19,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from parksim.bundle import Bundle
-from parksim.client import LocalSim, RequestError
+from parksim.frames import RequestError
+from parksim.sim import LocalSim
 
 from .budget import BudgetFull, ReplyBudget, ReplyTooLarge
 from .docs import install_docs
@@ -134,7 +135,7 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     pool = RenderPool(settings.workers, settings.queue_size, settings.render_timeout_s, settings.retry_after_s)
     budget = ReplyBudget(settings.reply_budget_bytes, settings.retry_after_s)
     metrics = Metrics(pool.stats, budget.stats)
-    # What server.deps hands to the handlers:
+    # What parksim.server.deps hands to the handlers:
     app.state.settings, app.state.registry, app.state.pool, app.state.budget, app.state.metrics = (
         settings, registry, pool, budget, metrics)
     _install_errors(app)

@@ -2,7 +2,7 @@
 
 The ground-truth BEV is the IPM of the dataset's fisheye images through the same mapping as the rendered one
 (the paper's I_ipm^gt, its "GT-" rows), so the two differ only by what the reconstruction gets wrong.
-Scores follow the detectors' own metrics (``recon.detectors.evaluate``): precision and recall at the
+Scores follow the detectors' own metrics (``parksim.recon.detectors.evaluate``): precision and recall at the
 operating threshold, AP over a low-threshold sweep, summed over frames (not averaged per frame).
 """
 

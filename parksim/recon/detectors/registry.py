@@ -23,7 +23,7 @@ def load_detector(path: str | Path, map_location: str = "cpu") -> DMPRDetector:
     """A trained detector in eval mode.
 
     Args:
-        path: ``model.pt`` as written by ``recon.detectors.train``, or its folder.
+        path: ``model.pt`` as written by ``parksim.recon.detectors.train``, or its folder.
         map_location: device the weights are loaded to.
 
     Returns:

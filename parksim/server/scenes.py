@@ -1,6 +1,6 @@
 """Scene registry: every bundle under the scenes folder loaded once at start-up and shared by all requests.
 
-Each scene is a ``parksim.client.LocalSim``, which caches its per-scale precomputation (scaled rig,
+Each scene is a ``parksim.sim.LocalSim``, which caches its per-scale precomputation (scaled rig,
 IPM grids and blend weights); renders reuse it. ``check_pose`` keeps poses inside the scene.
 """
 
@@ -11,7 +11,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from parksim.bundle import META, BundleError
-from parksim.client import LocalSim, RequestError
+from parksim.frames import RequestError
+from parksim.sim import LocalSim
 
 from .schemas import Pose
 from .settings import Settings

@@ -3,7 +3,7 @@
 The trainer calls, per iteration, ``step_pre_backward`` (the strategy's loss term), ``step_post_backward``
 (after ``loss.backward()``, before the optimizer: gradients are there, parameters not yet moved) and
 ``step_post_update`` (after the optimizer step: grow, prune, relocate), each with the same ``StepInfo``.
-A new strategy is one subclass plus its name in ``recon.strategy.STRATEGIES``.
+A new strategy is one subclass plus its name in ``parksim.recon.strategy.STRATEGIES``.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ from .slot_aware.config import SlotAwareConfig
 __all__ = ["TrainConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config",
            "load_config", "parse_config", "dump_config"]
 
-PRESETS_DIR = Path(__file__).resolve().parents[1] / "parksim" / "configs"
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
 """The packaged training presets, one YAML file per name."""
 
 
@@ -119,7 +119,7 @@ class RunConfig(_Strict):
 
 
 class PoseRefineConfig(_Strict):
-    """Learned corrections of the ego (or per-image) poses and the extrinsics (``recon.pose_refine``).
+    """Learned corrections of the ego (or per-image) poses and the extrinsics (``parksim.recon.pose_refine``).
 
     ``enabled: auto`` turns them on exactly for imported recordings (meta.json ``source: import``): real odometry
     and calibration are never exact, synthetic ones are. Rotations in rad, translations in m, per Adam step.

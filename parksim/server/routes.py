@@ -13,7 +13,7 @@ from fastapi import APIRouter, Depends, Query
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 
-from parksim.client import NPZ_LAYOUT
+from parksim.frames import NPZ_LAYOUT
 
 from .auth import require_api_key
 from .deps import BudgetDep, MetricsDep, PoolDep, RegistryDep, RendererDep, SettingsDep

@@ -1,10 +1,10 @@
 """The paper's experiments on one dataset: novel-view scores and BEV slot detection of several reconstructions.
 
 For each reconstruction (a scene bundle) it scores the test views (PSNR/SSIM over the whole valid image and
-over slot regions, ``recon.evaluate``) and runs every given detector on the rendered BEVs of the test frames;
+over slot regions, ``parksim.recon.evaluate``) and runs every given detector on the rendered BEVs of the test frames;
 each detector also runs once on the ground-truth BEVs (the "GT-" rows). A dataset's off-path split (``parksim
 offpath``) is scored the same way per offset group (one code path, ``_Split``, parameterised by the reader).
-Writes ``tables.json`` (all numbers), ``tables.md`` (``recon.paper_tables``) and one ``panel_<detector>.png`` of
+Writes ``tables.json`` (all numbers), ``tables.md`` (``parksim.recon.paper_tables``) and one ``panel_<detector>.png`` of
 ground-truth vs rendered BEVs with labels and detections.
 """
 

@@ -1,4 +1,4 @@
-"""Markdown versions of the paper's experiment tables from ``recon.paper_eval`` results (one result per scene).
+"""Markdown versions of the paper's experiment tables from ``parksim.recon.paper_eval`` results (one result per scene).
 
 * Novel view synthesis: photometric-only and full slot-aware reconstructions, PSNR/SSIM over the whole valid
   image and over slot regions.
@@ -8,7 +8,7 @@
 * Off the recorded path (datasets with an off-path split, ``parksim offpath``): per scene and detector, slot
   precision/recall on ground-truth and rendered BEVs at the same off-path poses, per offset group.
 Rows are matched across scenes by label; a cell a scene lacks reads "n/a". Each detection table names the
-scoring protocol (``recon.detectors.protocols``; results from before protocols were recorded used ParkSim's).
+scoring protocol (``parksim.recon.detectors.protocols``; results from before protocols were recorded used ParkSim's).
 """
 
 from __future__ import annotations
@@ -141,7 +141,7 @@ def _offpath(result: dict[str, Any], detector: str) -> list[str]:
 
 
 def tables_markdown(results: list[dict[str, Any]]) -> str:
-    """All tables for ``results`` (one ``recon.paper_eval.evaluate_runs`` result per scene), as Markdown."""
+    """All tables for ``results`` (one ``parksim.recon.paper_eval.evaluate_runs`` result per scene), as Markdown."""
     detectors = list(dict.fromkeys(d for r in results for d in r["gt"]))
     parts = [_synthesis(results)] + [_detection(results, d) for d in detectors] + [_ablation(results, detectors)]
     parts += [_offpath(r, d) for r in results if "offpath" in r for d in detectors]

@@ -50,7 +50,7 @@ class SimReplica:
 
 class PicklableBodies:
     """ASGI middleware turning ``memoryview`` response bodies into ``bytes``: Serve pickles every message a replica
-    sends to its HTTP proxy, and the app streams replies as memoryview slices (``server.replies``)."""
+    sends to its HTTP proxy, and the app streams replies as memoryview slices (``parksim.server.replies``)."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = app

@@ -1,0 +1,150 @@
+"""The simulator core: a loaded bundle that renders ``Frame`` objects in-process (``LocalSim``).
+
+The HTTP server renders with it, the gymnasium env drives it directly, and ``RemoteSim``
+(``parksim.client``) offers the same interface over HTTP, returning the same frames bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .frames import Frame, RequestError, npz_bytes_bound
+
+__all__ = ["LocalSim", "MIN_IMAGE_SIDE", "SUBSETS_KEPT"]
+
+MIN_IMAGE_SIDE = 4
+"""Smallest rendered image side (px) a ``scale`` may produce."""
+SUBSETS_KEPT = 16
+"""Visibility-cell subsets of the scene a ``LocalSim`` keeps (a planner moves through a few cells at a time)."""
+
+
+class LocalSim:
+    """A loaded bundle that renders frames in-process; shares render()'s cached scaled rigs and IPM grids."""
+
+    def __init__(self, bundle: Any, scene_id: str = "scene") -> None:
+        from .bundle import Bundle, load
+
+        self.bundle: Bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
+        self.id = scene_id
+        self.bounds = self._bounds()
+        self._subsets: OrderedDict[int, Any] = OrderedDict()
+        self._subsets_lock = threading.Lock()
+
+    @classmethod
+    def from_dir(cls, directory: str | Path) -> LocalSim:
+        """Load the bundle folder ``directory``; its name is the scene id."""
+        return cls(Path(directory), Path(directory).name)
+
+    def _bounds(self) -> dict[str, list[float]]:
+        """Scene extent (m): the map's garage floor and height, else the 1st-99th percentile of the Gaussians."""
+        garage = (self.bundle.map or {}).get("garage")
+        if garage:
+            return {"x": list(map(float, garage["x"])), "y": list(map(float, garage["y"])),
+                    "z": [0.0, float(garage.get("height", 3.0))]}
+        means = self.bundle.scene.means.detach().double()
+        lo, hi = (means.quantile(q, dim=0).tolist() for q in (0.01, 0.99))
+        return {axis: [lo[i], hi[i]] for i, axis in enumerate("xyz")}
+
+    @property
+    def cameras(self) -> list[str]:
+        return self.bundle.rig.names
+
+    def scene_at(self, pose: Sequence[float]) -> Any:
+        """The Gaussians to render at ``pose``: its visibility cell's subset when the bundle has a grid, else all.
+
+        Only planar poses (z = 0, level) use a cell: the grid was measured at such poses.
+        """
+        from .geometry import as_pose
+        from .visibility import PLANAR_TOL
+
+        grid, scene = self.bundle.visibility, self.bundle.scene
+        if grid is None:
+            return scene
+        T = as_pose(list(pose))
+        planar = abs(float(T[2, 3])) <= PLANAR_TOL and 1.0 - float(T[2, 2]) <= PLANAR_TOL
+        cell = grid.cell_of(float(T[0, 3]), float(T[1, 3])) if planar else None
+        if cell is None:
+            return scene
+        with self._subsets_lock:
+            if cell in self._subsets:
+                self._subsets.move_to_end(cell)
+                return self._subsets[cell]
+        import torch
+
+        subset = scene.subset(torch.from_numpy(grid.members(cell)).long())
+        with self._subsets_lock:
+            self._subsets[cell] = subset
+            while len(self._subsets) > SUBSETS_KEPT:
+                self._subsets.popitem(last=False)
+        return subset
+
+    def image_size(self, camera: str, scale: float) -> tuple[int, int]:
+        """(width, height) of ``camera`` rendered at ``scale``."""
+        model = self.bundle.rig.cameras[camera].model
+        return round(model.width * scale), round(model.height * scale)
+
+    def check(self, cameras: Sequence[str] | None, scale: float) -> list[str]:
+        """The cameras to return (all when None); ``RequestError`` names an unknown camera or a too small scale."""
+        names = list(self.cameras if cameras is None else cameras)
+        unknown = [n for n in names if n not in self.bundle.rig.cameras]
+        if unknown:
+            raise RequestError(f"unknown camera(s) {unknown}; scene {self.id!r} has {self.cameras}")
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise RequestError(f"camera(s) {twice} asked for twice: name each camera once")
+        if not (math.isfinite(scale) and scale > 0):
+            raise RequestError(f"scale must be a positive finite number, got {scale}")
+        small = [n for n in self.cameras if min(self.image_size(n, scale)) < MIN_IMAGE_SIDE]
+        if small:
+            raise RequestError(f"scale {scale} makes camera(s) {small} smaller than {MIN_IMAGE_SIDE} px")
+        return names
+
+    def reply_bytes(self, poses: int, cameras: Sequence[str], bev: bool, scale: float, depth: bool) -> int:
+        """Upper bound of the ``encode_npz`` size of ``poses`` frames of checked ``cameras`` (before rendering them).
+
+        Pixels x channels (uint8 RGB, float32 depth) per view and pose, plus headers and ``meta``.
+        """
+        pixels = sum(w * h for w, h in (self.image_size(n, scale) for n in cameras))
+        data = pixels * (3 + 4 * depth) + 3 * self.bundle.rig.bev.width * self.bundle.rig.bev.height * bev
+        return npz_bytes_bound(poses, data, len(cameras) * (1 + depth) + bev)
+
+    def info(self) -> dict[str, Any]:
+        """What ``GET /scenes/{id}`` returns: rig, image sizes, BEV spec, bounds, slot map, metadata, recorded
+        path (None for a bundle without one) and the ego footprint (``VehicleParams.extent``, as the env drives it)."""
+        from .vehicle import VehicleParams
+
+        b = self.bundle
+        return {"id": self.id, "gaussians": len(b.scene), "cameras": self.cameras, "rig": b.rig.to_dict(),
+                "bev": b.rig.bev.to_dict(), "bounds": self.bounds, "map": b.map, "meta": b.meta,
+                "recorded_path": b.meta.get("recorded_path"), "footprint": list(VehicleParams().extent)}
+
+    def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
+               scale: float = 1.0, depth: bool = False) -> Frame:
+        """Render ``cameras`` (all when None; the BEV needs them all, so they are all rendered then) at ``pose``."""
+        from .imageio import to_uint8
+        from .render import bev_ipm, render
+
+        names = self.check(cameras, scale)
+        needed = self.cameras if bev else names
+        frame = Frame()
+        start = time.perf_counter()
+        if needed:
+            res = render(self.scene_at(pose), self.bundle.rig, list(pose), cameras=needed, scale=scale,
+                         method=self.bundle.projection)
+            frame.images = {n: to_uint8(res.images[n]) for n in names}
+            if depth:
+                frame.depth = {n: res.depth[n].detach().numpy().astype(np.float32) for n in names}
+        frame.timings["views"] = time.perf_counter() - start
+        if bev:
+            start = time.perf_counter()
+            frame.bev = to_uint8(bev_ipm(self.bundle.rig, scale)(res.images))
+            frame.timings["bev"] = time.perf_counter() - start
+        return frame
