@@ -156,7 +156,7 @@ def test_without_ray_the_command_says_what_to_install(bundle_dir):
     """With ``ray`` unimportable, --ray is one line and exit 2; the single-process app and its flag checks work."""
     code = ("import sys; sys.modules['ray'] = None\n"
             "from parksim.cli import main\n"
-            "from server import create_app\n"
+            "from parksim.server import create_app\n"
             f"create_app({str(bundle_dir)!r})\n"
             f"assert main(['serve', '--scenes', {str(bundle_dir)!r}, '--replicas', '2']) == 2\n"
             f"sys.exit(main(['serve', '--ray', '--scenes', {str(bundle_dir)!r}]))")

@@ -73,13 +73,16 @@ def _suite_section(name: str, records: list[tuple[Path, Record]], out_dir: Path)
 
 
 def _legacy_section(records: list[tuple[Path, Record]], out_dir: Path) -> list[str]:
+    """The legacy records, grouped by suite, each with its source file and its plot."""
     lines = ["## Legacy records", "",
              "Converted from the Markdown result files of before this harness; kept as they were written, with the "
              "commands that made them, and not re-measured. A suite run of today supersedes them.", "",
-             "| suite | what | dated | record |", "| --- | --- | --- | --- |"]
-    for path, rec in records:
-        lines.append(f"| {rec.suite} | {_cell(rec.note or '')} | {rec.date[:10]} | "
-                     f"[{path.name}]({_link(path, out_dir)}) |")
+             "| suite | what | source | dated | record |", "| --- | --- | --- | --- | --- |"]
+    for path, rec in sorted(records, key=lambda pr: (pr[1].suite, pr[1].date, str(pr[0]))):
+        what = (rec.note or "").split(";")[0]
+        plot = f", [plot]({_link(path.with_name(rec.plot), out_dir)})" if rec.plot else ""
+        lines.append(f"| {rec.suite} | {_cell(what)} | {_cell(str(rec.data.get('source', '')))} | {rec.date[:10]} | "
+                     f"[{path.stem}]({_link(path, out_dir)}){plot} |")
     return [*lines, ""]
 
 
@@ -106,10 +109,13 @@ def render_dashboard(results: Path, out_dir: Path) -> str:
              "measured in the same run. Timings are medians, wall time with the process CPU time beside it (the "
              "machines are shared). What the figures mean, findings and discussion: "
              f"[docs/benchmarks.md]({NOTES_LINK}).", "",
-             "| suite | targets | latest record |", "| --- | --- | --- |"]
-    for name, recs in sorted(by_suite.items()):
+             "| suite | targets | latest run | legacy records | notes |", "| --- | --- | --- | --- | --- |"]
+    for name in sorted({r.suite for _, r in everything}):
+        recs = by_suite.get(name, [])
         targets = len({f.target for _, r in recs for f in r.figures})
-        lines.append(f"| [{name}](#{name}) | {targets} | {recs[-1][1].date[:10]} |")
+        title = f"[{name}](#{name})" if recs else name
+        lines.append(f"| {title} | {targets} | {recs[-1][1].date[:10] if recs else '-'} | "
+                     f"{sum(r.suite == name for _, r in legacy)} | [{name}]({NOTES_LINK}#{name}) |")
     lines.append("")
     for name, recs in sorted(by_suite.items()):
         lines += _suite_section(name, recs, out_dir)
