@@ -219,19 +219,16 @@ def test_top_level_images_are_named_after_their_colmap_camera(tmp_path: Path) ->
 
 def test_images_default_to_the_folder_beside_the_model_or_its_parent(synth: Path, models: Path,
                                                                       tmp_path: Path) -> None:
-    import argparse
+    from parksim.importers.colmap import ColmapImporter, ColmapOptions
 
-    from parksim.importers.colmap import add_arguments, load
-
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
+    colmap = ColmapImporter()
     shutil.copytree(synth / "images", tmp_path / "project" / "images")
     for model in (tmp_path / "project" / "sparse", tmp_path / "project" / "sparse" / "0"):
         shutil.copytree(models / "bin", model, dirs_exist_ok=True)
-        rec = load(parser.parse_args([str(model)]))
+        rec = colmap.load(ColmapOptions(model))
         assert rec.notes["images_dir"] == str(tmp_path / "project" / "images") and len(rec.frames) == 12
     with pytest.raises(ColmapError, match="no images folder at .*; pass --images"):
-        load(parser.parse_args([str(models / "bin")]))
+        colmap.load(ColmapOptions(models / "bin"))
 
 
 def test_opencv_images_are_undistorted_to_the_pinhole_with_the_same_k(tmp_path: Path) -> None:

@@ -5,12 +5,15 @@ fields carry ``metadata``; it never sees argparse. Keys of a field's ``metadata`
 
 - ``help`` (required): one line for ``--help``.
 - ``flag``: an extra spelling such as ``"-o"``; ``positional``: True for a positional argument.
-- ``metavar``; ``low`` / ``high``: a range checked while the command line is parsed (``parksim.commands.argtypes``).
+- ``metavar``; ``low`` / ``high``: a range checked while the command line is parsed (``parksim.commands.argtypes``);
+  ``open_low``: True when ``low`` itself is refused (a float that must be positive).
+- ``nargs``: ``"+"`` for a ``list``/``tuple`` given as several words after the flag (``--images a b``) instead of
+  one comma-separated word.
 - ``quick``: the value under ``--quick`` (benchmark suites' small preset), shown in ``--help``.
 
 Types understood: ``bool`` (``--name`` / ``--no-name``), ``int``, ``float``, ``str``, ``Path``, ``Literal[...]``
 (choices), ``X | None`` (optional, default None), ``list[X]`` and ``tuple[X, ...]`` (comma-separated), and
-``dict[str, Path]`` (``NAME=PATH``, repeated).
+``dict[str, X]`` (``NAME=VALUE`` words, X one of the scalar types, after one flag or repeated).
 """
 
 from __future__ import annotations
@@ -64,12 +67,15 @@ def _comma_list(item: Callable[[str], Any], tuple_: bool) -> Callable[[str], Any
     return parse
 
 
-def _named_path(text: str) -> tuple[str, Path]:
-    """``NAME=PATH`` -> (NAME, Path(PATH))."""
-    name, sep, path = text.partition("=")
-    if not sep or not name or not path:
-        raise argparse.ArgumentTypeError(f"expected NAME=PATH, got {text!r}")
-    return name, Path(path)
+def _named(value: Callable[[str], Any]) -> Callable[[str], tuple[str, Any]]:
+    """Parse ``NAME=VALUE`` into ``(NAME, value(VALUE))``."""
+    def parse(text: str) -> tuple[str, Any]:
+        name, sep, rest = text.partition("=")
+        if not sep or not name or not rest:
+            raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+        return name, value(rest)
+
+    return parse
 
 
 def _shown(value: Any) -> str:
@@ -118,12 +124,15 @@ def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif origin is Literal:
             kwargs["choices"] = list(typing.get_args(tp))
+        elif origin in (list, tuple) and meta.get("nargs") == "+":
+            kwargs.update(type=_scalar_parser(typing.get_args(tp)[0], meta), nargs="+")
         elif origin in (list, tuple):
             item = typing.get_args(tp)[0]
             kwargs["type"] = _comma_list(_scalar_parser(item, meta), origin is tuple)
             kwargs.setdefault("metavar", "A,B,...")
         elif origin is dict:
-            kwargs.update(type=_named_path, action="append", metavar=meta.get("metavar", "NAME=PATH"))
+            kwargs.update(type=_named(_scalar_parser(typing.get_args(tp)[1], meta)), action="extend", nargs="+",
+                          metavar=meta.get("metavar", "NAME=VALUE"))
         else:
             kwargs["type"] = _scalar_parser(tp, meta)
         if meta.get("positional"):
@@ -157,8 +166,11 @@ def options_from_args(cls: type[T], args: argparse.Namespace, quick: bool = Fals
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]  # cls is a dataclass by contract
         if hasattr(args, f.name):
             value = getattr(args, f.name)
-            if typing.get_origin(_unwrap_optional(hints[f.name])[0]) is dict and isinstance(value, list):
+            origin = typing.get_origin(_unwrap_optional(hints[f.name])[0])
+            if origin is dict and isinstance(value, list):
                 value = dict(value)
+            elif origin is tuple and isinstance(value, list):
+                value = tuple(value)
             values[f.name] = value
         elif quick and "quick" in f.metadata:
             values[f.name] = f.metadata["quick"]

@@ -17,31 +17,20 @@ pycolmap. Conventions of the source and what becomes of them:
 
 from __future__ import annotations
 
-import argparse
 import struct
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .base import CheckedOptions, Importer
 from .images import Distortion, frame_number, image_source
 from .recording import Dropped, Recording, RecordingError
 
-__all__ = ["HELP", "DESCRIPTION", "ColmapError", "ColmapCamera", "ColmapImage", "ColmapModel", "read_model",
-           "recording_from_model", "add_arguments", "load", "MODEL_NAMES"]
-
-HELP = "a COLMAP sparse model (cameras, images, points3D as .bin or .txt) with its images"
-DESCRIPTION = (
-    "MODEL is a COLMAP sparse model folder holding cameras, images and points3D, all .bin or all .txt (binary "
-    "preferred, as COLMAP does); rigs/frames files are not needed. The images named in it are read from --images "
-    "(default: images/ beside MODEL, or beside its parent as in COLMAP's project/sparse/0). An image's folder is "
-    "its camera (front/000001.png -> camera front; top-level images -> cam<COLMAP camera id>) and the last "
-    "integer in its file stem its frame id; frames without every camera are dropped. Camera models: "
-    "OPENCV_FISHEYE, SIMPLE_PINHOLE, PINHOLE; SIMPLE_RADIAL, RADIAL and OPENCV are undistorted to pinhole. "
-    "Principal points move from COLMAP's pixel-centre-at-0.5 convention to ParkSim's 0. points3D becomes the "
-    "initial point cloud. SfM poses have no metric scale: give --scale, or --rig for its camera baselines.")
+__all__ = ["ColmapImporter", "ColmapOptions", "ColmapError", "ColmapCamera", "ColmapImage", "ColmapModel",
+           "read_model", "recording_from_model", "MODEL_NAMES"]
 
 MODEL_NAMES = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV",
                "FOV", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "THIN_PRISM_FISHEYE", "RAD_TAN_THIN_PRISM_FISHEYE",
@@ -374,20 +363,37 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
                      points=(model.xyz, model.rgb), dropped=dropped, notes=notes)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The model folder, ``--images`` and ``--fps``."""
-    from ..commands.argtypes import number
+@dataclass(frozen=True)
+class ColmapOptions(CheckedOptions):
+    """Options of ``parksim import colmap``."""
 
-    p.add_argument("model", type=Path, metavar="MODEL",
-                   help="COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)")
-    p.add_argument("--images", type=Path, metavar="DIR",
-                   help="folder the model's image names are relative to (default: images/ beside MODEL, else "
-                        "beside its parent)")
-    p.add_argument("--fps", type=number(0, open_low=True), default=10.0,
-                   help="frame rate: frame f is at f / FPS seconds (COLMAP has no times; default 10)")
+    model: Path = field(metadata={"help": "COLMAP sparse model folder (cameras, images, points3D: .bin or .txt)",
+                                  "positional": True, "metavar": "MODEL"})
+    images: Path | None = field(default=None, metadata={
+        "help": "folder the model's image names are relative to (default: images/ beside MODEL, else beside its "
+                "parent)", "metavar": "DIR"})
+    fps: float = field(default=10.0, metadata={
+        "help": "frame rate: frame f is at f / FPS seconds (COLMAP has no times)", "low": 0, "open_low": True})
 
 
-def load(args: argparse.Namespace) -> Recording:
-    """Read and check the model and its images (nothing is written)."""
-    model = read_model(args.model)
-    return recording_from_model(model, _images_dir(args.model, args.images), args.fps)
+class ColmapImporter(Importer):
+    """A COLMAP sparse model and its images."""
+
+    name = "colmap"
+    help = "a COLMAP sparse model (cameras, images, points3D as .bin or .txt) with its images"
+    description = (
+        "MODEL is a COLMAP sparse model folder holding cameras, images and points3D, all .bin or all .txt (binary "
+        "preferred, as COLMAP does); rigs/frames files are not needed. The images named in it are read from "
+        "--images (default: images/ beside MODEL, or beside its parent as in COLMAP's project/sparse/0). An "
+        "image's folder is its camera (front/000001.png -> camera front; top-level images -> cam<COLMAP camera "
+        "id>) and the last integer in its file stem its frame id; frames without every camera are dropped. Camera "
+        "models: OPENCV_FISHEYE, SIMPLE_PINHOLE, PINHOLE; SIMPLE_RADIAL, RADIAL and OPENCV are undistorted to "
+        "pinhole. Principal points move from COLMAP's pixel-centre-at-0.5 convention to ParkSim's 0. points3D "
+        "becomes the initial point cloud. SfM poses have no metric scale: give --scale, or --rig for its camera "
+        "baselines.")
+    Options = ColmapOptions
+
+    def load(self, options: ColmapOptions) -> Recording:
+        """Read and check the model and its images (nothing is written)."""
+        model = read_model(options.model)
+        return recording_from_model(model, _images_dir(options.model, options.images), options.fps)

@@ -13,21 +13,25 @@ Every nerfstudio convention lives here (nerfstudio's ``nerfstudio_dataparser.py`
   (absent = 0). ``camera_model`` is top-level (absent: a perspective camera, as nerfstudio).
 - Images are grouped into cameras by parent folder when they lie in several folders, else by distinct intrinsics
   (``cam0``, ``cam1``... in order of appearance); into frames by the last integer in the file stem.
+
+Other ``transforms.json`` dialects reuse the reading in three steps: ``load_json`` (the file), ``read_frames``
+(every frame's image, lens and pose, once the dialect's keys are rewritten as nerfstudio's) and
+``recording_from_transforms`` (cameras, frames, split, points and notes); ``instant_ngp`` does so.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .base import CheckedOptions, Importer
 from .images import Distortion, frame_number, image_source
 from .recording import Dropped, Recording, RecordingError, check_pose
 
@@ -35,18 +39,9 @@ if TYPE_CHECKING:
     from ..camera import CameraModel
     from ..data import DatasetReader
 
-__all__ = ["HELP", "DESCRIPTION", "add_arguments", "load", "read_transforms", "export", "transforms_of",
-           "OPENGL_FROM_OPENCV"]
-
-HELP = "a nerfstudio transforms.json (OPENCV_FISHEYE, OPENCV or PINHOLE cameras) with its images"
-DESCRIPTION = (
-    "Read a nerfstudio dataset: transforms.json (camera_model OPENCV_FISHEYE, OPENCV, PINHOLE or another "
-    "perspective model; fl_x, fl_y, cx, cy, w, h and k1..k4, p1, p2 at the top level or per frame; per frame "
-    "file_path relative to the json and transform_matrix camera-to-world in OpenGL camera axes; optional time (s), "
-    "ply_file_path, train/val/test_filenames). Images are grouped into cameras by parent folder (else by distinct "
-    "intrinsics) and into frames by the last integer in the file name; a frame missing a camera is dropped. "
-    "Perspective images with distortion are undistorted to pinhole cameras with the same focal length and centre. "
-    "Timestamps are the frames' time, else frame number / --fps. See docs/import_nerfstudio.md.")
+__all__ = ["NerfstudioImporter", "NerfstudioOptions", "Lens", "Image", "load_json", "json_number", "image_size",
+           "read_frames", "read_transforms", "recording_from_transforms", "export", "transforms_of",
+           "OPENGL_FROM_OPENCV", "PIXEL_OFFSET", "FISHEYE", "DISTORTION"]
 
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right factor between ParkSim's T_world_camera (OpenCV axes) and nerfstudio's transform_matrix (OpenGL axes);
@@ -61,13 +56,14 @@ DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 SPLITS = {"train": ("train_filenames",), "test": ("test_filenames", "val_filenames")}
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The source and the frame rate used when frames carry no time."""
-    from ..commands.argtypes import number
+@dataclass(frozen=True)
+class NerfstudioOptions(CheckedOptions):
+    """Options of ``parksim import nerfstudio``."""
 
-    p.add_argument("transforms", type=Path, help="transforms.json, or the folder holding it")
-    p.add_argument("--fps", type=number(0, open_low=True), default=10.0,
-                   help="frame rate giving timestamps (frame number / fps) when frames have no 'time'")
+    transforms: Path = field(metadata={"help": "transforms.json, or the folder holding it", "positional": True})
+    fps: float = field(default=10.0, metadata={
+        "help": "frame rate giving timestamps (frame number / fps) when frames have no 'time'", "low": 0,
+        "open_low": True})
 
 
 @dataclass(frozen=True)
@@ -115,8 +111,9 @@ class Image:
     T_world_camera: np.ndarray
 
 
-def _load_json(path: Path) -> tuple[Path, dict[str, Any]]:
-    """The transforms file (``path`` or ``path/transforms.json``) and its content."""
+def load_json(path: Path) -> tuple[Path, dict[str, Any]]:
+    """The transforms file (``path`` or ``path/transforms.json``) and its content, checked to be an object with a
+    non-empty ``frames`` list."""
     file = path / "transforms.json" if path.is_dir() else path
     if not file.is_file():
         raise RecordingError(f"{file}: file not found")
@@ -129,7 +126,8 @@ def _load_json(path: Path) -> tuple[Path, dict[str, Any]]:
     return file, meta
 
 
-def _number(entry: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
+def json_number(entry: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
+    """``entry[key]`` (else ``default``) as a finite float; its absence or another type is an error at ``where``."""
     value = entry.get(key, default)
     if value is None:
         raise RecordingError(f"{where}: no {key!r} (at the top level or in the frame)")
@@ -141,10 +139,10 @@ def _number(entry: dict[str, Any], key: str, where: str, default: float | None =
 def _lens(meta: dict[str, Any], frame: dict[str, Any], model: str, where: str) -> Lens:
     """A frame's intrinsics: per key from the top level if there, else from the frame (nerfstudio's rule)."""
     def pick(key: str, default: float | None = None) -> float:
-        return _number(meta if key in meta else frame, key, where, default)
+        return json_number(meta if key in meta else frame, key, where, default)
 
     source = meta if any(k in meta for k in DISTORTION) else frame
-    distortion = tuple(_number(source, k, where, 0.0) for k in DISTORTION)
+    distortion = tuple(json_number(source, k, where, 0.0) for k in DISTORTION)
     size = []
     for key in ("w", "h"):
         v = pick(key)
@@ -155,7 +153,7 @@ def _lens(meta: dict[str, Any], frame: dict[str, Any], model: str, where: str) -
     if model == FISHEYE and any(distortion[4:]):
         raise RecordingError(f"{where}: OPENCV_FISHEYE has no tangential distortion, got p1, p2 = {distortion[4:]}")
     return Lens(model, size[0], size[1], pick("fl_x"), pick("fl_y"), pick("cx"), pick("cy"), distortion,
-                None if fov is None else _number({"max_fov_deg": fov}, "max_fov_deg", where))
+                None if fov is None else json_number({"max_fov_deg": fov}, "max_fov_deg", where))
 
 
 def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
@@ -176,7 +174,7 @@ def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
     return M @ OPENGL_FROM_OPENCV
 
 
-def _image_size(path: Path) -> tuple[int, int]:
+def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding the pixels."""
     from PIL import Image as PILImage
     from PIL import UnidentifiedImageError
@@ -188,9 +186,17 @@ def _image_size(path: Path) -> tuple[int, int]:
         raise RecordingError(f"{path}: not a readable image: {e}") from None
 
 
-def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
-    """Parse and check transforms.json: every frame's file exists at its stated size, its pose is rigid."""
-    file, meta = _load_json(path)
+def read_frames(file: Path, meta: dict[str, Any]) -> list[Image]:
+    """Every frame of ``meta`` (the content of ``file``), checked: its image exists at its stated size, its lens
+    is one ParkSim models, its pose is rigid.
+
+    Args:
+        file: the transforms file (image paths are relative to its folder; messages name it).
+        meta: its content in nerfstudio's keys (``load_json``).
+
+    Returns:
+        One ``Image`` per entry of ``meta["frames"]``, in order.
+    """
     model = meta.get("camera_model", "OPENCV")
     if model != FISHEYE and model not in PERSPECTIVE:
         raise RecordingError(f"{file}: camera_model {model!r} is not supported; use {FISHEYE} or one of "
@@ -205,14 +211,20 @@ def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
         if not image.is_file():
             raise RecordingError(f"{where}: image file not found")
         lens = _lens(meta, frame, model, where)
-        if _image_size(image) != (lens.width, lens.height):
-            w, h = _image_size(image)
+        if image_size(image) != (lens.width, lens.height):
+            w, h = image_size(image)
             raise RecordingError(f"{where}: image is {w}x{h} but w, h say {lens.width}x{lens.height}")
-        time = None if "time" not in frame else _number(frame, "time", where)
+        time = None if "time" not in frame else json_number(frame, "time", where)
         images.append(Image(image, frame_number(image.name, where), time, lens, _pose(frame, where)))
     if len({im.time is None for im in images}) > 1:
         raise RecordingError(f"{file}: 'time' must be given for every frame or for none")
-    return file, meta, images
+    return images
+
+
+def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
+    """Parse and check transforms.json (``path`` or the folder holding it): the file, its content, its frames."""
+    file, meta = load_json(path)
+    return file, meta, read_frames(file, meta)
 
 
 def _group(file: Path, images: list[Image]) -> tuple[list[str], str]:
@@ -273,13 +285,24 @@ def _timestamp(images: list[Image], fps: float) -> float:
     return min(times) if times else images[0].frame / fps
 
 
-def load(args: argparse.Namespace) -> Recording:
-    """Read a nerfstudio dataset into a Recording with per-image poses (the import command fits the rig)."""
+def recording_from_transforms(file: Path, meta: dict[str, Any], images: list[Image], fps: float,
+                              source: str = "nerfstudio") -> Recording:
+    """The frames of a transforms file as a Recording with per-image poses (``import_recording`` fits the rig).
+
+    Args:
+        file: the transforms file; ``meta`` its content in nerfstudio's keys; ``images`` its frames
+            (``read_frames``).
+        fps: frames without ``time`` are at frame number / ``fps`` seconds.
+        source: the dialect, named in the report's notes.
+
+    Returns:
+        Cameras grouped by folder (else intrinsics), frames with an image from every camera (the others dropped),
+        the file's split and point cloud when it has them.
+    """
     import torch
 
     from ..rig import BEVSpec, Rig, RigCamera
 
-    file, meta, images = read_transforms(Path(args.transforms))
     names, rule = _group(file, images)
     cameras = list(dict.fromkeys(names))
     lenses: dict[str, Lens] = {}
@@ -307,13 +330,13 @@ def load(args: argparse.Namespace) -> Recording:
     if not frames:
         raise RecordingError(f"{file}: no frame has an image from every camera {cameras}")
     timed = images[0].time is not None
-    stamps = [_timestamp([table[(f, c)] for c in cameras], args.fps) for f in frames]
+    stamps = [_timestamp([table[(f, c)] for c in cameras], fps) for f in frames]
     rig = Rig({c: RigCamera(c, models[c], torch.eye(4, dtype=torch.float64)) for c in cameras}, BEVSpec())
     notes: dict[str, Any] = {
         "source": str(file), "camera_model": meta.get("camera_model", "OPENCV (absent)"), "cameras_by": rule,
-        "timestamps": "the frames' time" if timed else f"frame number / {args.fps} fps",
-        "principal_point": "cx = cx_nerfstudio - 0.5, cy = cy_nerfstudio - 0.5 (pixel centres at 0.5 there, 0 here)"}
-    undistorted = {c: "nerfstudio's perspective distortion -> pinhole (same fl_x, fl_y, cx, cy), cv2.remap "
+        "timestamps": "the frames' time" if timed else f"frame number / {fps} fps",
+        "principal_point": f"cx = cx_{source} - 0.5, cy = cy_{source} - 0.5 (pixel centres at 0.5 there, 0 here)"}
+    undistorted = {c: f"{source}'s perspective distortion -> pinhole (same fl_x, fl_y, cx, cy), cv2.remap "
                       "bilinear, black where the source has no pixel"
                    for c in cameras if lenses[c].distortion_to_remove}
     extra = {"applied_transform": meta.get("applied_transform"), "undistorted": undistorted,
@@ -326,6 +349,28 @@ def load(args: argparse.Namespace) -> Recording:
         camera_poses=[{c: table[(f, c)].T_world_camera for c in cameras} for f in frames],
         points=_points(file, meta), dropped=dropped, notes=notes,
         split=_split(file, meta, {f: [table[(f, c)].path for c in cameras] for f in frames}))
+
+
+class NerfstudioImporter(Importer):
+    """nerfstudio's ``transforms.json`` and its images."""
+
+    name = "nerfstudio"
+    help = "a nerfstudio transforms.json (OPENCV_FISHEYE, OPENCV or PINHOLE cameras) with its images"
+    description = (
+        "Read a nerfstudio dataset: transforms.json (camera_model OPENCV_FISHEYE, OPENCV, PINHOLE or another "
+        "perspective model; fl_x, fl_y, cx, cy, w, h and k1..k4, p1, p2 at the top level or per frame; per "
+        "frame file_path relative to the json and transform_matrix camera-to-world in OpenGL camera axes; "
+        "optional time (s), ply_file_path, train/val/test_filenames). Images are grouped into cameras by parent "
+        "folder (else by distinct intrinsics) and into frames by the last integer in the file name; a frame "
+        "missing a camera is dropped. Perspective images with distortion are undistorted to pinhole cameras with "
+        "the same focal length and centre. Timestamps are the frames' time, else frame number / --fps. See "
+        "docs/import_nerfstudio.md.")
+    Options = NerfstudioOptions
+
+    def load(self, options: NerfstudioOptions) -> Recording:
+        """Read and check transforms.json and its images (nothing is written)."""
+        file, meta = load_json(options.transforms)
+        return recording_from_transforms(file, meta, read_frames(file, meta), options.fps)
 
 
 # --- export -------------------------------------------------------------------------------------------------------

@@ -18,26 +18,26 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import functools
 import json
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from .base import CheckedOptions, Importer
 from .recording import Dropped, ImageSource, Recording, RecordingError
-from .rig_log_calib import FORMATS, QUATERNION_TOLERANCE, rotations, unit_quaternions
+from .rig_log_calib import FORMATS, QUATERNION_TOLERANCE, CalibFormat, rotations, unit_quaternions
 
 if TYPE_CHECKING:
     from ..rig import Rig
 
-__all__ = ["HELP", "DESCRIPTION", "POSE_COLUMNS", "TIME_RULE", "PoseLog", "read_poses", "file_time", "slerp",
-           "add_arguments", "load"]
+__all__ = ["RigLogImporter", "RigLogOptions", "POSE_COLUMNS", "TIME_RULE", "PoseLog", "read_poses", "file_time",
+           "slerp"]
 
 TIME_COLUMNS = {"timestamp": 1, "time": 1, "t": 1, "timestamp_s": 1, "timestamp_ms": 10**3, "timestamp_us": 10**6,
                 "timestamp_ns": 10**9}
@@ -51,65 +51,65 @@ POSE_COLUMNS = ("time: one of timestamp, time, t, timestamp_s (seconds), timesta
 TIME_RULE = ("the last number in the file name is the time: with a decimal point, seconds; an integer by its digit "
              "count, <=10 seconds, 11-13 milliseconds, 14-16 microseconds, 17-19 nanoseconds (or --time-unit)")
 UNIT_TICKS = {"s": 1, "ms": 10**3, "us": 10**6, "ns": 10**9}
+TimeUnit = Literal["auto", "s", "ms", "us", "ns"]
+"""``auto`` (``TIME_RULE``) or a key of ``UNIT_TICKS``."""
 TIME_EPS = 1e-6
 """Seconds within which two times are the same (a logged pose is used as is; a frame is synchronised)."""
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
-HELP = "a vehicle's rig log: calibration, ego odometry and per-camera images or videos"
-DESCRIPTION = (
-    "Read a rig log: --calib (OpenCV fisheye YAML, WoodScape JSON, OCamCalib calib_results.txt or JSON, or a "
-    "ParkSim rig; a folder with one file per camera named by the camera, plus extrinsics.json/yaml for the formats "
-    "without extrinsics), --poses (CSV or JSON, T_world_vehicle against time; " + POSE_COLUMNS + "), and images: "
-    "--images with one folder per camera (" + TIME_RULE + ") or --video per camera sampled at --fps (frame i at "
-    "--video-start + i / the video's frame rate). A frame is the first camera's image with every other camera's "
-    "nearest image within --sync-tolerance, at the mean of their times; its pose is interpolated between logged "
-    "poses at most --max-gap apart (linear translation, slerp rotation), else the frame is dropped and counted. "
-    "Unsynchronised cameras get per-image poses at their own times. See docs/import_rig_log.md.")
-
-
 def _camera_value(text: str) -> tuple[str, str]:
     """``CAM=VALUE`` -> (camera, value)."""
     camera, sep, value = text.partition("=")
     if not sep or not camera or not value:
-        raise argparse.ArgumentTypeError(f"expected CAMERA=VALUE, got {text!r}")
+        raise RecordingError(f"--images: expected CAM=DIR, got {text!r}")
     return camera, value
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """Calibration, poses, image sources and the matching tolerances."""
-    from ..commands.argtypes import number
+@dataclass(frozen=True, kw_only=True)
+class RigLogOptions(CheckedOptions):
+    """Options of ``parksim import rig-log`` (keyword arguments, in the order ``--help`` lists them)."""
 
-    p.add_argument("--calib", type=Path, required=True, metavar="FILE|DIR",
-                   help="calibration file, or a folder with one file per camera named by the camera "
-                        "(front.yaml, rear.json, left.txt...) and extrinsics.json/yaml when the format has none")
-    p.add_argument("--calib-format", choices=list(FORMATS), help="calibration format (default: from each file's "
-                   "content): " + "; ".join(f"{k}: {v}" for k, v in FORMATS.items()))
-    p.add_argument("--extrinsics", type=Path, metavar="FILE",
-                   help="T_vehicle_camera per camera (JSON/YAML: cameras: {name: {T_vehicle_camera: 4x4} or {x, y, z, "
-                        "qw, qx, qy, qz}}, optional bev) for OpenCV YAML and OCamCalib calibrations")
-    p.add_argument("--max-fov", type=number(0, 360, open_low=True), metavar="DEG",
-                   help="lens field of view (the files do not state it; default: 190 for OpenCV and WoodScape, "
-                        "360 for OCamCalib, i.e. up to the image corners)")
-    p.add_argument("--poses", type=Path, required=True, metavar="FILE",
-                   help="ego poses T_world_vehicle, .csv (header row; comma- or whitespace-separated) or .json "
-                        "(a list of objects, or {\"poses\": [...]}); columns: " + POSE_COLUMNS)
-    p.add_argument("--images", nargs="+", metavar="[CAM=]DIR",
-                   help="one image folder per camera as CAM=DIR, or one DIR holding a sub-folder per camera; "
-                        + TIME_RULE)
-    p.add_argument("--video", nargs="+", type=_camera_value, default=[], metavar="CAM=FILE",
-                   help="one video per camera (anything cv2.VideoCapture reads); frame i is at --video-start + i / "
-                        "the video's frame rate")
-    p.add_argument("--video-start", nargs="+", type=_camera_value, default=[], metavar="CAM=SECONDS",
-                   help="time of a video's first frame (default 0)")
-    p.add_argument("--fps", type=number(0, open_low=True), metavar="HZ",
-                   help="sample videos at this rate: the frame nearest each multiple of 1/HZ (default: every frame)")
-    p.add_argument("--time-unit", choices=["auto", *UNIT_TICKS], default="auto",
-                   help="unit of the numbers in image file names (default auto: " + TIME_RULE + ")")
-    p.add_argument("--sync-tolerance", type=number(0), default=0.02, metavar="S",
-                   help="largest time between the first camera's image and another camera's image of one frame")
-    p.add_argument("--max-gap", type=number(0, open_low=True), default=0.2, metavar="S",
-                   help="largest time between the two logged poses a pose is interpolated between")
+    calib: Path = field(metadata={
+        "help": "calibration file, or a folder with one file per camera named by the camera (front.yaml, "
+                "rear.json, left.txt...) and extrinsics.json/yaml when the format has none", "metavar": "FILE|DIR"})
+    calib_format: CalibFormat | None = field(default=None, metadata={
+        "help": "calibration format (default: from each file's content): "
+                + "; ".join(f"{k}: {v}" for k, v in FORMATS.items())})
+    extrinsics: Path | None = field(default=None, metadata={
+        "help": "T_vehicle_camera per camera (JSON/YAML: cameras: {name: {T_vehicle_camera: 4x4} or {x, y, z, qw, "
+                "qx, qy, qz}}, optional bev) for OpenCV YAML and OCamCalib calibrations", "metavar": "FILE"})
+    max_fov: float | None = field(default=None, metadata={
+        "help": "lens field of view (the files do not state it; default: 190 for OpenCV and WoodScape, 360 for "
+                "OCamCalib, i.e. up to the image corners)", "metavar": "DEG", "low": 0, "open_low": True,
+        "high": 360})
+    poses: Path = field(metadata={
+        "help": "ego poses T_world_vehicle, .csv (header row; comma- or whitespace-separated) or .json (a list of "
+                "objects, or {\"poses\": [...]}); columns: " + POSE_COLUMNS, "metavar": "FILE"})
+    images: tuple[str, ...] = field(default=(), metadata={
+        "help": "one image folder per camera as CAM=DIR, or one DIR holding a sub-folder per camera; " + TIME_RULE,
+        "metavar": "[CAM=]DIR", "nargs": "+"})
+    video: dict[str, Path] = field(default_factory=dict, metadata={
+        "help": "one video per camera (anything cv2.VideoCapture reads); frame i is at --video-start + i / the "
+                "video's frame rate", "metavar": "CAM=FILE"})
+    video_start: dict[str, float] = field(default_factory=dict, metadata={
+        "help": "time of a video's first frame (default 0)", "metavar": "CAM=SECONDS"})
+    fps: float | None = field(default=None, metadata={
+        "help": "sample videos at this rate: the frame nearest each multiple of 1/HZ (default: every frame)",
+        "metavar": "HZ", "low": 0, "open_low": True})
+    time_unit: TimeUnit = field(default="auto", metadata={
+        "help": "unit of the numbers in image file names (auto: " + TIME_RULE + ")"})
+    sync_tolerance: float = field(default=0.02, metadata={
+        "help": "largest time between the first camera's image and another camera's image of one frame",
+        "metavar": "S", "low": 0})
+    max_gap: float = field(default=0.2, metadata={
+        "help": "largest time between the two logged poses a pose is interpolated between", "metavar": "S",
+        "low": 0, "open_low": True})
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.images and not self.video:
+            raise ValueError("give the images: --images (folders) or --video (one per camera)")
 
 
 # --- poses ----------------------------------------------------------------------------------------------------------
@@ -410,12 +410,12 @@ def _video(camera: str, path: Path, start: float, fps: float | None, size: tuple
                    "sampled": len(shots), "start_s": start}
 
 
-def _sources(args: argparse.Namespace, rig: Rig) -> tuple[dict[str, list[Shot]], dict[str, Any]]:
+def _sources(options: RigLogOptions, rig: Rig) -> tuple[dict[str, list[Shot]], dict[str, Any]]:
     """Every camera's shots in time order (from --images or --video) and notes on where they came from."""
     folders: dict[str, Path] = {}
-    if args.images:
-        plain = [v for v in args.images if "=" not in v]
-        if plain and len(args.images) > 1:
+    if options.images:
+        plain = [v for v in options.images if "=" not in v]
+        if plain and len(options.images) > 1:
             raise RecordingError(f"--images: give one ROOT folder or CAM=DIR per camera, not both ({plain[0]!r})")
         if plain:
             root = Path(plain[0])
@@ -423,9 +423,8 @@ def _sources(args: argparse.Namespace, rig: Rig) -> tuple[dict[str, list[Shot]],
                 raise RecordingError(f"--images {root}: not a folder")
             folders = {p.name: p for p in sorted(root.iterdir()) if p.is_dir()}
         else:
-            folders = {c: Path(d) for c, d in (_camera_value(v) for v in args.images)}
-    videos = {c: Path(f) for c, f in args.video}
-    starts = {c: _seconds(v, 1, f"--video-start {c}={v}") for c, v in args.video_start}
+            folders = {c: Path(d) for c, d in (_camera_value(v) for v in options.images)}
+    videos, starts = dict(options.video), dict(options.video_start)
     given = list(folders) + list(videos)
     for c in given + list(starts):
         if c not in rig.cameras:
@@ -441,11 +440,11 @@ def _sources(args: argparse.Namespace, rig: Rig) -> tuple[dict[str, list[Shot]],
     for c in rig.names:
         size = (rig.cameras[c].model.width, rig.cameras[c].model.height)
         if c in folders:
-            shots[c], found = _image_folder(c, folders[c], args.time_unit, size)
+            shots[c], found = _image_folder(c, folders[c], options.time_unit, size)
             units |= found
             notes[c] = {"images": str(folders[c]), "count": len(shots[c])}
         else:
-            shots[c], notes[c] = _video(c, videos[c], starts.get(c, 0.0), args.fps, size)
+            shots[c], notes[c] = _video(c, videos[c], starts.get(c, 0.0), options.fps, size)
     if len(units) > 1:
         raise RecordingError(f"image file names read as {' and '.join(sorted(units))}: the digit counts differ; "
                              "give --time-unit")
@@ -481,48 +480,62 @@ def _group(shots: dict[str, list[Shot]], names: list[str], tolerance: float
     return frames, dropped
 
 
-def load(args: argparse.Namespace) -> Recording:
-    """Read the calibration, pose log and images; group them into frames with poses (see the module's docstring)."""
-    from .rig_log_calib import load_calibration
+class RigLogImporter(Importer):
+    """A vehicle's own recording: calibration, ego odometry, per-camera images or videos."""
 
-    if getattr(args, "rig", None) is not None:
-        raise RecordingError("--rig: a rig log's rig comes from --calib")
-    if not args.images and not args.video:
-        raise RecordingError("give the images: --images (folders) or --video (one per camera)")
-    rig, notes = load_calibration(args.calib, args.calib_format, args.extrinsics, args.max_fov)
-    log = read_poses(args.poses)
-    shots, source_notes = _sources(args, rig)
-    names = rig.names
-    grouped, dropped = _group(shots, names, args.sync_tolerance)
-    synchronised = all(max(s.time for s in m.values()) - min(s.time for s in m.values()) <= TIME_EPS
-                       for _, m in grouped)
-    frame_times = np.array([np.mean([s.time for s in m.values()]) for _, m in grouped])
-    ego, why = log.at(frame_times, args.max_gap)
-    why = [None if w is None else f"frame time {w}" for w in why]
-    own = None
-    if not synchronised:   # every image's ego pose at its own time
-        own_T, own_why = log.at(np.array([m[c].time for _, m in grouped for c in names]), args.max_gap)
-        own = own_T.reshape(len(grouped), len(names), 4, 4)
-        for i in range(len(grouped)):
-            bad = [f"image of camera {c} {w}" for c, w in zip(names, own_why[i * len(names):(i + 1) * len(names)])
-                   if w]
-            why[i] = why[i] or (bad[0] if bad else None)
-    keep = [i for i, w in enumerate(why) if w is None]
-    dropped += [Dropped(w, None, grouped[i][0], float(frame_times[i])) for i, w in enumerate(why) if w]
-    frames = [grouped[i][0] for i in keep]
-    camera_poses = None
-    if own is not None:
-        rigT = {c: rig.cameras[c].T_vehicle_camera.numpy() for c in names}
-        camera_poses = [{c: own[i, j] @ rigT[c] for j, c in enumerate(names)} for i in keep]
-    notes.update({"poses_file": str(args.poses), "pose_log": log.kind, "pose_samples": len(log.times),
-                  "pose_time_span_s": [float(log.times[0]), float(log.times[-1])], **source_notes,
-                  "synchronised": synchronised,
-                  "frame_poses": ("ego poses (every frame's images share one time)" if synchronised else
-                                  "ego poses at the frame time (mean of its images' times) and per-image camera "
-                                  "poses at each image's time"),
-                  "interpolation": "linear translation, slerp rotation, between logged poses at most --max-gap apart",
-                  "sync_tolerance_s": args.sync_tolerance, "max_gap_s": args.max_gap,
-                  "quaternion_tolerance": QUATERNION_TOLERANCE})
-    return Recording(rig=rig, frames=frames, timestamps=[float(frame_times[i]) for i in keep],
-                     images={(grouped[i][0], c): grouped[i][1][c].source for i in keep for c in names},
-                     poses=ego[keep], camera_poses=camera_poses, dropped=dropped, notes=notes)
+    name = "rig-log"
+    help = "a vehicle's rig log: calibration, ego odometry and per-camera images or videos"
+    description = (
+        "Read a rig log: --calib (OpenCV fisheye YAML, WoodScape JSON, OCamCalib calib_results.txt or JSON, or a "
+        "ParkSim rig; a folder with one file per camera named by the camera, plus extrinsics.json/yaml for the formats "
+        "without extrinsics), --poses (CSV or JSON, T_world_vehicle against time; " + POSE_COLUMNS + "), and images: "
+        "--images with one folder per camera (" + TIME_RULE + ") or --video per camera sampled at --fps (frame i at "
+        "--video-start + i / the video's frame rate). A frame is the first camera's image with every other camera's "
+        "nearest image within --sync-tolerance, at the mean of their times; its pose is interpolated between logged "
+        "poses at most --max-gap apart (linear translation, slerp rotation), else the frame is dropped and counted. "
+        "Unsynchronised cameras get per-image poses at their own times. See docs/import_rig_log.md.")
+    Options = RigLogOptions
+
+    def load(self, options: RigLogOptions) -> Recording:
+        """Read the calibration, pose log and images; group them into frames with poses (see the module's
+        docstring)."""
+        from .rig_log_calib import load_calibration
+
+        rig, notes = load_calibration(options.calib, options.calib_format, options.extrinsics, options.max_fov)
+        log = read_poses(options.poses)
+        shots, source_notes = _sources(options, rig)
+        names = rig.names
+        grouped, dropped = _group(shots, names, options.sync_tolerance)
+        synchronised = all(max(s.time for s in m.values()) - min(s.time for s in m.values()) <= TIME_EPS
+                           for _, m in grouped)
+        frame_times = np.array([np.mean([s.time for s in m.values()]) for _, m in grouped])
+        ego, why = log.at(frame_times, options.max_gap)
+        why = [None if w is None else f"frame time {w}" for w in why]
+        own = None
+        if not synchronised:   # every image's ego pose at its own time
+            own_T, own_why = log.at(np.array([m[c].time for _, m in grouped for c in names]), options.max_gap)
+            own = own_T.reshape(len(grouped), len(names), 4, 4)
+            for i in range(len(grouped)):
+                mine = own_why[i * len(names):(i + 1) * len(names)]
+                bad = [f"image of camera {c} {w}" for c, w in zip(names, mine) if w]
+                why[i] = why[i] or (bad[0] if bad else None)
+        keep = [i for i, w in enumerate(why) if w is None]
+        dropped += [Dropped(w, None, grouped[i][0], float(frame_times[i])) for i, w in enumerate(why) if w]
+        frames = [grouped[i][0] for i in keep]
+        camera_poses = None
+        if own is not None:
+            rigT = {c: rig.cameras[c].T_vehicle_camera.numpy() for c in names}
+            camera_poses = [{c: own[i, j] @ rigT[c] for j, c in enumerate(names)} for i in keep]
+        notes.update({"poses_file": str(options.poses), "pose_log": log.kind, "pose_samples": len(log.times),
+                      "pose_time_span_s": [float(log.times[0]), float(log.times[-1])], **source_notes,
+                      "synchronised": synchronised,
+                      "frame_poses": ("ego poses (every frame's images share one time)" if synchronised else
+                                      "ego poses at the frame time (mean of its images' times) and per-image camera "
+                                      "poses at each image's time"),
+                      "interpolation": "linear translation, slerp rotation, between logged poses at most --max-gap "
+                                       "apart",
+                      "sync_tolerance_s": options.sync_tolerance, "max_gap_s": options.max_gap,
+                      "quaternion_tolerance": QUATERNION_TOLERANCE})
+        return Recording(rig=rig, frames=frames, timestamps=[float(frame_times[i]) for i in keep],
+                         images={(grouped[i][0], c): grouped[i][1][c].source for i in keep for c in names},
+                         poses=ego[keep], camera_poses=camera_poses, dropped=dropped, notes=notes)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -27,7 +27,7 @@ from .recording import RecordingError, check_pose
 if TYPE_CHECKING:
     from ..rig import BEVSpec, Rig, RigCamera
 
-__all__ = ["FORMATS", "EXTRINSICS_NAMES", "QUATERNION_TOLERANCE", "detect_format", "read_extrinsics",
+__all__ = ["FORMATS", "CalibFormat", "EXTRINSICS_NAMES", "QUATERNION_TOLERANCE", "detect_format", "read_extrinsics",
            "load_calibration", "unit_quaternions", "rotations"]
 
 FORMATS = {"opencv-yaml": "OpenCV fisheye YAML (camera_matrix, dist_coeffs, resolution)",
@@ -36,6 +36,8 @@ FORMATS = {"opencv-yaml": "OpenCV fisheye YAML (camera_matrix, dist_coeffs, reso
            "ocam-json": "OCam surround-view JSON (cam_K, cam_dist)",
            "parksim": "ParkSim rig file (rig.json/yaml: every camera's intrinsics and T_vehicle_camera)"}
 """``--calib-format`` values and what each reads."""
+CalibFormat = Literal["opencv-yaml", "woodscape", "ocam-txt", "ocam-json", "parksim"]
+"""The keys of ``FORMATS``, as a type."""
 OWN_EXTRINSICS = ("woodscape", "parksim")
 EXTRINSICS_NAMES = ("extrinsics.json", "extrinsics.yaml", "extrinsics.yml")
 CALIB_SUFFIXES = (".yaml", ".yml", ".json", ".txt")
