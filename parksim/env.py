@@ -39,7 +39,14 @@ _MARGIN_M = 5.0
 
 
 def slot_pose(slot: dict[str, Any]) -> tuple[np.ndarray, float]:
-    """Slot centre (world xy) and its parking heading: into the slot, or along it for parallel slots."""
+    """Slot centre (world xy) and its parking heading: into the slot, or along it for parallel slots.
+
+    Args:
+        slot: a map slot with ``corners`` ``[4, 2]`` (world metres; the first two on the entrance side).
+
+    Returns:
+        ``(centre [2], yaw)``: the centre in metres and the heading in radians along the slot's longer side.
+    """
     c = np.asarray(slot["corners"], np.float64)
     centre = c.mean(axis=0)
     into = c[2:].mean(axis=0) - c[:2].mean(axis=0)
@@ -49,12 +56,31 @@ def slot_pose(slot: dict[str, Any]) -> tuple[np.ndarray, float]:
 
 
 def free_slots(world_map: dict[str, Any]) -> list[dict[str, Any]]:
-    """The map's slots that no parked car occupies."""
+    """The map's slots that no parked car occupies.
+
+    Args:
+        world_map: a scene's ``map.json`` content.
+
+    Returns:
+        The slots whose ``occupied`` is false or absent, in map order.
+    """
     return [s for s in world_map.get("slots", []) if not s.get("occupied", False)]
 
 
 def heading_error(yaw: float, slot_yaw: float) -> float:
-    """Heading error to the slot axis in [0, pi/2]: forward or backward parking both count."""
+    """Heading error to the slot axis in [0, pi/2]: forward or backward parking both count.
+
+    Args:
+        yaw: the car's heading in radians.
+        slot_yaw: the slot's heading in radians (``slot_pose``).
+
+    Returns:
+        The smaller angle between the car and the slot axis, radians.
+
+    Example:
+        >>> round(heading_error(math.pi - 0.1, 0.0), 6)
+        0.1
+    """
     e = abs(float(wrap_angle(yaw - slot_yaw)))
     return min(e, math.pi - e)
 
@@ -63,14 +89,31 @@ def to_controls(action: Sequence[float] | np.ndarray, p: VehicleParams) -> tuple
     """(acceleration m/s^2, steering rad) for a normalised action, clipped to [-1, 1] first.
 
     ``action[0]`` = +1 is ``p.max_accel``, -1 is ``-p.max_decel`` (linear on each side of 0: the car
-    brakes harder than it accelerates); ``action[1]`` = +-1 is +-``p.max_steer`` (positive steers left)."""
+    brakes harder than it accelerates); ``action[1]`` = +-1 is +-``p.max_steer`` (positive steers left).
+
+    Args:
+        action: ``[2]`` normalised ``(acceleration, steering)``.
+        p: the vehicle's limits.
+
+    Returns:
+        ``(acceleration, steering)`` in m/s^2 and radians.
+    """
     a = np.clip(np.asarray(action, np.float64).reshape(2), -1.0, 1.0)
     accel = a[0] * (p.max_accel if a[0] >= 0 else p.max_decel)
     return float(accel), float(a[1] * p.max_steer)
 
 
 def to_action(accel: float, steer: float, p: VehicleParams) -> np.ndarray:
-    """Inverse of ``to_controls``: the float32 normalised action for physical controls (clipped to the limits)."""
+    """Inverse of ``to_controls``: the float32 normalised action for physical controls (clipped to the limits).
+
+    Args:
+        accel: acceleration in m/s^2 (negative brakes).
+        steer: steering angle in radians (positive left).
+        p: the vehicle's limits.
+
+    Returns:
+        ``[2]`` float32 action in [-1, 1].
+    """
     a = accel / (p.max_accel if accel >= 0 else p.max_decel)
     return np.clip(np.array([a, steer / p.max_steer], np.float32), -1.0, 1.0)
 
@@ -85,6 +128,28 @@ class ParkingEnv(gym.Env):
                  cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 0.25,
                  privileged: bool = False, pos_tol: float = 0.35, yaw_tol: float = 0.15,
                  vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None) -> None:
+        """Open the frame source and build the spaces (docs/env.md has the full contract).
+
+        Args:
+            bundle: a bundle folder (or ``Bundle``) rendered in-process by a ``LocalSim``.
+            server: URL of ``parksim serve``, rendered there by a ``RemoteSim``.
+            scene: the server's scene id (default: its first).
+            api_key: the server's API key, if it needs one.
+            sim: a ready frame source, shared by several envs.
+            cameras: the camera views in the observation (default: all; ``[]`` for none).
+            bev: add the BEV to the observation.
+            scale: image size relative to the rig's cameras (the BEV keeps its spec's size).
+            privileged: add the world pose ``[x, y, yaw]`` to the observation and the info.
+            pos_tol: parked when the body centre is within this distance of the slot centre (m).
+            yaw_tol: parking also needs the heading within this angle of the slot axis, either way (rad).
+            vehicle: the ego's size, limits and steering geometry.
+            render_mode: None, or "rgb_array" for ``render()``'s top view.
+
+        Raises:
+            ValueError: not exactly one of ``bundle``, ``server``, ``sim``; an unknown ``render_mode``; a scene
+                without a free slot.
+            RequestError: an unknown camera or a too small ``scale``.
+        """
         if sum(source is not None for source in (bundle, server, sim)) != 1:
             raise ValueError("ParkingEnv needs exactly one frame source: bundle=<bundle folder>, server=<URL> "
                              "or sim=<LocalSim or RemoteSim>")
@@ -135,7 +200,7 @@ class ParkingEnv(gym.Env):
 
     # --- episode -------------------------------------------------------------------------
     def _random_start(self) -> VehicleState:
-        """A collision-free pose on an aisle centre line, facing along the aisle (either way)."""
+        """A collision-free pose on an aisle centre line, facing along the aisle (either way); 200 tries."""
         g = self.world_map["garage"]
         lanes = g.get("lanes") or [float(np.mean(g["y"]))]
         for _ in range(200):
@@ -147,7 +212,20 @@ class ParkingEnv(gym.Env):
         raise RuntimeError("no collision-free start pose found on the aisles")
 
     def begin(self, seed: int | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
-        """Start an episode without rendering (``reset`` = ``begin`` + ``observe``); returns its info."""
+        """Start an episode without rendering (``reset`` = ``begin`` + ``observe``); returns its info.
+
+        Args:
+            seed: seeds ``np_random`` (gymnasium's rule: only the first reset needs one).
+            options: ``start`` = ``(x, y, yaw)`` and/or ``slot`` = a free slot's id.
+
+        Returns:
+            The info dict (``slot``, ``distance``, ``heading_error``, ``collision``, ``is_success``, ``speed``,
+            and ``pose`` when privileged).
+
+        Raises:
+            ValueError: ``options["slot"]`` is not a free slot.
+            RuntimeError: no collision-free random start in 200 tries.
+        """
         super().reset(seed=seed)
         options = options or {}
         self.state = (VehicleState(*map(float, options["start"])) if "start" in options else self._random_start())
@@ -163,8 +241,14 @@ class ParkingEnv(gym.Env):
         return self._info(collided=False)
 
     def advance(self, action: np.ndarray) -> tuple[float, bool, dict[str, Any]]:
-        """Apply one normalised action for 0.1 s without rendering (``step`` = ``advance`` + ``observe``):
-        (reward, terminated, info)."""
+        """Apply one normalised action for 0.1 s without rendering (``step`` = ``advance`` + ``observe``).
+
+        Args:
+            action: ``[2]`` normalised ``(acceleration, steering)`` (``to_controls``).
+
+        Returns:
+            ``(reward, terminated, info)``: terminated when parked or collided.
+        """
         accel, steer = to_controls(action, self.vehicle)
         self.state = step(self.state, accel, steer, self.vehicle)
         collided = self.obstacles.collides(self.state.pose, self.vehicle)
@@ -179,36 +263,63 @@ class ParkingEnv(gym.Env):
         """New episode. ``options``: ``start`` = (x, y, yaw) and/or ``slot`` = slot id (default: random free slot).
 
         The random start is drawn before the slot, so the same seed gives the same start whatever slot is chosen.
+
+        Args:
+            seed: seeds ``np_random``.
+            options: ``start`` = ``(x, y, yaw)`` and/or ``slot`` = a free slot's id.
+
+        Returns:
+            ``(observation, info)``: uint8 ``[H, W, 3]`` per camera, ``bev`` when asked, ``state`` float32
+            ``[v, steer, slot_x, slot_y, slot_yaw]``, ``pose`` when privileged; info as ``begin``.
         """
         info = self.begin(seed, options)
         return self.observe(self.frame()), info
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
-        """Apply the normalised ``[acceleration, steering]`` for 0.1 s; never truncates (``TimeLimit`` does)."""
+        """Apply the normalised ``[acceleration, steering]`` for 0.1 s; never truncates (``TimeLimit`` does).
+
+        Args:
+            action: ``[2]`` in [-1, 1] (clipped).
+
+        Returns:
+            ``(observation, reward, terminated, truncated=False, info)``.
+        """
         reward, terminated, info = self.advance(action)
         return self.observe(self.frame()), reward, terminated, False, info
 
     # --- measurements --------------------------------------------------------------------
     def errors(self) -> tuple[float, float]:
-        """(distance of the body centre to the slot centre in m, heading error to the slot axis in rad)."""
+        """(distance of the body centre to the slot centre in m, heading error to the slot axis in rad).
+
+        Returns:
+            ``(distance, heading_error)`` at the current state.
+        """
         centre, slot_yaw = slot_pose(self.slot)
         dist = float(np.linalg.norm(car_centre(self.state.pose, self.vehicle) - centre))
         return dist, heading_error(self.state.yaw, slot_yaw)
 
     def _progress_cost(self) -> float:
+        """What the reward decreases: distance + 0.5 heading error."""
         dist, yaw_err = self.errors()
         return dist + _YAW_WEIGHT * yaw_err
 
     def target_pose(self) -> tuple[float, float, float]:
-        """Rear-axle pose that parks the car head-in, centred in the target slot."""
+        """Rear-axle pose that parks the car head-in, centred in the target slot.
+
+        Returns:
+            ``(x, y, yaw)`` in world metres and radians.
+        """
         centre, yaw = slot_pose(self.slot)
         x0, x1, _, _ = self.vehicle.extent
         d = (x0 + x1) / 2
         return (float(centre[0] - d * math.cos(yaw)), float(centre[1] - d * math.sin(yaw)), yaw)
 
     def slot_in_ego_frame(self) -> tuple[float, float, float]:
-        """The target slot's centre (m; x forward, y left, origin under the rear axle) and parking heading (rad),
-        in the ego frame."""
+        """The target slot's centre and parking heading in the ego frame.
+
+        Returns:
+            ``(x, y, yaw)``: metres with x forward, y left and the origin under the rear axle; radians.
+        """
         centre, slot_yaw = slot_pose(self.slot)
         s = self.state
         dx, dy = centre[0] - s.x, centre[1] - s.y
@@ -216,6 +327,7 @@ class ParkingEnv(gym.Env):
         return (c * dx + si * dy, -si * dx + c * dy, float(wrap_angle(slot_yaw - s.yaw)))
 
     def _info(self, collided: bool) -> dict[str, Any]:
+        """The step's info dict (see ``begin``)."""
         dist, yaw_err = self.errors()
         parked = dist < self.pos_tol and yaw_err < self.yaw_tol and abs(self.state.v) < 0.1
         info = {"slot": self.slot["id"], "distance": dist, "heading_error": yaw_err, "collision": bool(collided),
@@ -228,12 +340,22 @@ class ParkingEnv(gym.Env):
         return bool(self.cameras or self.bev)
 
     def frame(self) -> Frame | None:
-        """The views at the current pose, rendered by ``sim`` (None when ``renders`` is False)."""
+        """The views at the current pose, rendered by ``sim`` (None when ``renders`` is False).
+
+        Returns:
+            The frame of the env's cameras (and BEV), or None.
+        """
         return self.sim.render(self.state.pose, self.cameras, self.bev, self.scale) if self.renders else None
 
     def observe(self, frame: Frame | None) -> dict[str, np.ndarray]:
-        """The observation at the current state, with ``frame``'s views (rendered at ``state.pose``; None when
-        ``renders`` is False)."""
+        """The observation at the current state, with ``frame``'s views.
+
+        Args:
+            frame: the views rendered at ``state.pose``; None when ``renders`` is False.
+
+        Returns:
+            The observation dict (see ``reset``).
+        """
         s = self.state
         obs: dict[str, np.ndarray] = {"state": np.array([s.v, s.steer, *self.slot_in_ego_frame()], np.float32)}
         if self.privileged:
@@ -246,6 +368,7 @@ class ParkingEnv(gym.Env):
 
     # --- top view ------------------------------------------------------------------------
     def _to_px(self, xy: np.ndarray) -> np.ndarray:
+        """World ``[..., 2]`` -> top-view pixels ``[..., 2]`` int32."""
         g = self.world_map["garage"]
         u = (xy[..., 0] - g["x"][0]) * _TOP_PX_PER_M
         v = (g["y"][1] - xy[..., 1]) * _TOP_PX_PER_M
@@ -268,7 +391,11 @@ class ParkingEnv(gym.Env):
         return img
 
     def render(self) -> np.ndarray | None:
-        """RGB top view of the garage: target slot in green, the ego footprint in orange with its heading."""
+        """RGB top view of the garage: target slot in green, the ego footprint in orange with its heading.
+
+        Returns:
+            uint8 ``[H, W, 3]`` at 16 px/m over the garage floor, or None unless ``render_mode="rgb_array"``.
+        """
         import cv2
 
         if self.render_mode != "rgb_array":

@@ -36,7 +36,14 @@ class RequestError(ValueError):
 
 @dataclass
 class Frame:
-    """One rendered pose: uint8 HxWx3 ``images`` per camera, float32 ``depth`` (m), uint8 ``bev``, ``timings`` (s)."""
+    """One rendered pose: uint8 HxWx3 ``images`` per camera, float32 ``depth`` (m), uint8 ``bev``, ``timings`` (s).
+
+    Attributes:
+        images: per camera name, ``[H, W, 3]`` uint8 RGB.
+        depth: per camera name, ``[H, W]`` float32 metres along the ray (empty unless asked for).
+        bev: ``[Hb, Wb, 3]`` uint8 RGB, or None.
+        timings: seconds per stage (``views``, ``bev``).
+    """
 
     images: dict[str, np.ndarray] = field(default_factory=dict)
     depth: dict[str, np.ndarray] = field(default_factory=dict)
@@ -45,12 +52,32 @@ class Frame:
 
 
 def pose_text(pose: Sequence[float]) -> str:
-    """``x,y,yaw`` (or 6 values) with exact float round-trip, as ``GET /render?pose=`` takes it."""
+    """``x,y,yaw`` (or 6 values) with exact float round-trip, as ``GET /render?pose=`` takes it.
+
+    Args:
+        pose: the pose's numbers.
+
+    Returns:
+        The numbers' ``repr`` joined by commas.
+
+    Example:
+        >>> pose_text((12.0, 0.5, 0.1))
+        '12.0,0.5,0.1'
+    """
     return ",".join(repr(float(v)) for v in pose)
 
 
 def encode_npz(frames: Sequence[Frame], meta: dict[str, Any], batch: bool) -> bytes:
-    """Pack frames (stacked along a leading axis when ``batch``) and ``meta`` into uncompressed ``.npz`` bytes."""
+    """Pack frames (stacked along a leading axis when ``batch``) and ``meta`` into uncompressed ``.npz`` bytes.
+
+    Args:
+        frames: one frame or more, all with the same cameras, depth maps and BEV presence.
+        meta: JSON values stored under ``meta`` (scene, poses, cameras, ...); ``batch`` is added.
+        batch: stack the arrays along a leading pose axis (``POST /render``); False takes ``frames[0]`` alone.
+
+    Returns:
+        The ``.npz`` file's bytes in the layout ``NPZ_LAYOUT``.
+    """
     first = frames[0]
     arrays: dict[str, np.ndarray] = {}
 
@@ -71,7 +98,20 @@ def encode_npz(frames: Sequence[Frame], meta: dict[str, Any], batch: bool) -> by
 
 
 def decode_npz(data: bytes) -> tuple[list[Frame], dict[str, Any]]:
-    """Inverse of ``encode_npz``: one frame per pose (a single-pose reply gives a list of one) and the metadata."""
+    """Inverse of ``encode_npz``: one frame per pose (a single-pose reply gives a list of one) and the metadata.
+
+    Args:
+        data: the ``.npz`` bytes.
+
+    Returns:
+        ``(frames, meta)``: the frames, ``timings`` converted from ``meta["timings_ms"]`` to seconds, and the
+        metadata.
+
+    Example:
+        >>> frames, meta = decode_npz(encode_npz([Frame(bev=np.zeros((2, 2, 3), np.uint8))], {"scene": "a"}, False))
+        >>> frames[0].bev.shape, meta
+        ((2, 2, 3), {'scene': 'a', 'batch': None})
+    """
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
         arrays = {k: z[k] for k in z.files if k != "meta"}

@@ -27,7 +27,8 @@ _MAX_SH_DEGREE = 3
 class PLYFormatError(ValueError):
     """A Gaussian PLY file is unreadable, incomplete or holds non-finite values.
 
-    The message names the file and the field."""
+    The message names the file and the field.
+    """
 
 
 def _degree_of(k: int) -> int | None:
@@ -38,16 +39,34 @@ def _degree_of(k: int) -> int | None:
 
 @dataclass
 class GaussianScene:
-    """N anisotropic 3D Gaussians in world coordinates (tensors share dtype and device)."""
+    """N anisotropic 3D Gaussians in world coordinates (tensors share dtype and device).
 
-    means: Tensor            # [N, 3] world positions (m)
-    quats: Tensor            # [N, 4] rotation, wxyz, any non-zero norm
-    log_scales: Tensor       # [N, 3] log standard deviations along the rotated axes
-    opacity_logits: Tensor   # [N]    sigmoid gives opacity
-    sh: Tensor               # [N, K, 3] SH coefficients, K = (sh_degree + 1)^2
+    Attributes:
+        means: ``[N, 3]`` world positions (m).
+        quats: ``[N, 4]`` rotations, wxyz, any non-zero norm.
+        log_scales: ``[N, 3]`` log standard deviations (m) along the rotated axes.
+        opacity_logits: ``[N]``; their sigmoid is the opacity.
+        sh: ``[N, K, 3]`` SH coefficients per RGB channel, ``K = (sh_degree + 1)^2``.
+        sh_degree: SH degree, 0..3.
+
+    Raises:
+        ValueError: ``sh_degree`` outside 0..3, or a tensor whose shape N and ``sh_degree`` do not call for.
+
+    Example:
+        >>> scene = GaussianScene.random(100, sh_degree=1)
+        >>> len(scene), tuple(scene.sh.shape)
+        (100, (100, 4, 3))
+    """
+
+    means: Tensor
+    quats: Tensor
+    log_scales: Tensor
+    opacity_logits: Tensor
+    sh: Tensor
     sh_degree: int
 
     def __post_init__(self) -> None:
+        """Check the shapes (``validate`` checks the values too)."""
         self._check_shapes()
 
     def _check_shapes(self) -> None:
@@ -63,10 +82,13 @@ class GaussianScene:
                 raise ValueError(f"GaussianScene: {name} must have shape {shape}, got {got}")
 
     def validate(self) -> None:
-        """``ValueError`` naming the tensor and first Gaussian unless shapes agree, every value is finite and every
-        quaternion is non-zero: one non-finite coefficient would turn every pixel it touches NaN.
+        """Check shapes and values: one non-finite coefficient would turn every pixel it touches NaN.
 
         O(N), so call it once when a scene is loaded or built (``Bundle`` does), never per render.
+
+        Raises:
+            ValueError: unless shapes agree, every value is finite and every quaternion is non-zero; the message
+                names the tensor and the first bad Gaussian.
         """
         self._check_shapes()
         for name, t in self._tensors().items():
@@ -81,18 +103,34 @@ class GaussianScene:
                              f"first at Gaussian {int(zero.nonzero()[0, 0])}")
 
     def __len__(self) -> int:
+        """N, the number of Gaussians."""
         return self.means.shape[0]
 
     def _tensors(self) -> dict[str, Tensor]:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "sh_degree"}
 
     def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> GaussianScene:
-        """A copy with every tensor cast (autograd flows through the cast)."""
+        """A copy with every tensor cast (autograd flows through the cast).
+
+        Args:
+            dtype: the new float dtype (None: unchanged).
+            device: the new device (None: unchanged).
+
+        Returns:
+            The cast scene (the same tensors where nothing changes).
+        """
         return GaussianScene(**{k: v.to(dtype=dtype, device=device) for k, v in self._tensors().items()},
                              sh_degree=self.sh_degree)
 
     def subset(self, mask: Tensor) -> GaussianScene:
-        """The Gaussians selected by a boolean mask or an index tensor."""
+        """The Gaussians selected by a boolean mask or an index tensor.
+
+        Args:
+            mask: ``[N]`` bool, or ``[M]`` int64 row indices (in the order they list).
+
+        Returns:
+            The selected Gaussians as a new scene (indexing copies; autograd flows back).
+        """
         return GaussianScene(**{k: v[mask] for k, v in self._tensors().items()}, sh_degree=self.sh_degree)
 
     def spatially_sorted(self) -> GaussianScene:
@@ -101,6 +139,9 @@ class GaussianScene:
         Gaussians close in space become close in memory, so the rasterizer's reads for one image tile hit a
         compact block of rows (measured: four-camera CPU renders 10-15 % faster). Renders are unchanged up to
         the order of Gaussians at exactly equal depth. ``parksim reconstruct`` stores its bundles this way.
+
+        Returns:
+            The reordered scene (``self`` when it is empty); 10 bits per axis over the means' bounding cube.
         """
         m = self.means.detach().to(torch.float64).cpu().numpy()
         if len(m) == 0:
@@ -117,7 +158,20 @@ class GaussianScene:
     def random(cls, n: int, bounds: Sequence[Sequence[float]] = ((-5, -5, 0), (5, 5, 2)), sh_degree: int = 0,
                seed: int = 0, scale_range: tuple[float, float] = (0.02, 0.2),
                dtype: torch.dtype = torch.float32) -> GaussianScene:
-        """Random Gaussians uniform in the box ``bounds = (lo, hi)``: for tests and benchmarks."""
+        """Random Gaussians uniform in the box ``bounds = (lo, hi)``: for tests and benchmarks.
+
+        Args:
+            n: number of Gaussians.
+            bounds: ``(lo, hi)`` corners (x, y, z) of the box of means, in metres.
+            sh_degree: SH degree of the colours, 0..3.
+            seed: seed of the generator (the same seed gives the same scene).
+            scale_range: standard deviations drawn log-uniform in this range (m).
+            dtype: dtype of the tensors.
+
+        Returns:
+            The scene: random rotations, opacity logits ``N(0, 2^2)``, DC colours uniform in [0, 1], higher SH
+            bands ``N(0, 0.3^2)``.
+        """
         g = torch.Generator().manual_seed(seed)
         lo, hi = (torch.as_tensor(b, dtype=torch.float64) for b in bounds)
         means = lo + (hi - lo) * torch.rand(n, 3, generator=g, dtype=torch.float64)
@@ -131,7 +185,11 @@ class GaussianScene:
 
     # --- PLY I/O ------------------------------------------------------------------------
     def save_ply(self, path: str | Path) -> None:
-        """Write the INRIA 3DGS layout (float32; f_rest channel-major as INRIA writes it)."""
+        """Write the INRIA 3DGS layout (float32; f_rest channel-major as INRIA writes it).
+
+        Args:
+            path: the ``.ply`` file to write (binary, normals zero).
+        """
         from plyfile import PlyData, PlyElement
 
         n, k = len(self), self.sh.shape[1]
@@ -147,7 +205,19 @@ class GaussianScene:
 
     @classmethod
     def load_ply(cls, path: str | Path, dtype: torch.dtype = torch.float32) -> GaussianScene:
-        """Read the INRIA 3DGS layout; missing or non-finite fields raise ``PLYFormatError``."""
+        """Read the INRIA 3DGS layout; missing or non-finite fields raise ``PLYFormatError``.
+
+        Args:
+            path: a ``.ply`` file with a ``vertex`` element in the INRIA layout (SH degree from the f_rest count).
+            dtype: dtype of the tensors.
+
+        Returns:
+            The scene.
+
+        Raises:
+            PLYFormatError: the file is missing or unreadable, has no ``vertex`` element, an f_rest count of no SH
+                degree 0..3, a missing field or a non-finite value; the message names the file and the field.
+        """
         from plyfile import PlyData
 
         path = Path(path)

@@ -28,7 +28,19 @@ __all__ = [
 
 
 def make_transform(rotation: Tensor, translation: Tensor) -> Tensor:
-    """Stack ``R[...,3,3]`` and ``t[...,3]`` into ``T[...,4,4]``."""
+    """Stack ``R[...,3,3]`` and ``t[...,3]`` into ``T[...,4,4]``.
+
+    Args:
+        rotation: ``[..., 3, 3]`` rotations.
+        translation: ``[..., 3]`` translations, same batch shape and dtype.
+
+    Returns:
+        ``[..., 4, 4]`` homogeneous transforms with bottom row ``(0, 0, 0, 1)``.
+
+    Example:
+        >>> make_transform(torch.eye(3), torch.tensor([1.0, 2.0, 3.0]))[:, 3].tolist()
+        [1.0, 2.0, 3.0, 1.0]
+    """
     batch = rotation.shape[:-2]
     bottom = torch.zeros(*batch, 1, 4, dtype=rotation.dtype, device=rotation.device)
     bottom[..., 0, 3] = 1.0
@@ -37,7 +49,14 @@ def make_transform(rotation: Tensor, translation: Tensor) -> Tensor:
 
 
 def invert_transform(T: Tensor) -> Tensor:
-    """Inverse of a rigid transform, using R^T rather than a general matrix inverse."""
+    """Inverse of a rigid transform, using R^T rather than a general matrix inverse.
+
+    Args:
+        T: ``[..., 4, 4]`` rigid transforms ``T_a_b``.
+
+    Returns:
+        ``[..., 4, 4]`` the inverses ``T_b_a``.
+    """
     R = T[..., :3, :3]
     t = T[..., :3, 3]
     Rt = R.transpose(-1, -2)
@@ -45,7 +64,14 @@ def invert_transform(T: Tensor) -> Tensor:
 
 
 def compose(*transforms: Tensor) -> Tensor:
-    """``compose(A, B, C) = A @ B @ C`` (apply C first)."""
+    """``compose(A, B, C) = A @ B @ C`` (apply C first).
+
+    Args:
+        *transforms: one or more ``[..., 4, 4]`` transforms (batch dimensions broadcast).
+
+    Returns:
+        ``[..., 4, 4]`` their product, left to right.
+    """
     out = transforms[0]
     for T in transforms[1:]:
         out = out @ T
@@ -53,7 +79,15 @@ def compose(*transforms: Tensor) -> Tensor:
 
 
 def transform_points(T: Tensor, points: Tensor) -> Tensor:
-    """Apply ``T[...,4,4]`` to ``points[...,3]`` (broadcasting over batch dims)."""
+    """Apply ``T[...,4,4]`` to ``points[...,3]`` (broadcasting over batch dims).
+
+    Args:
+        T: ``[4, 4]`` transform ``T_a_b``, or ``[..., 4, 4]`` with one transform per point.
+        points: ``[..., 3]`` points in frame ``b`` (any batch shape for a single ``[4, 4]``).
+
+    Returns:
+        ``[..., 3]`` the points in frame ``a``.
+    """
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., :3, 3]
 
 
@@ -65,20 +99,55 @@ def _rot_z(yaw: Tensor) -> Tensor:
 
 def pose_from_xy_yaw(x: float | Tensor, y: float | Tensor, yaw: float | Tensor,
                      dtype: torch.dtype = torch.float64) -> Tensor:
-    """Planner pose ``(x, y, yaw)`` -> ``T_world_vehicle`` on the ground plane."""
+    """Planner pose ``(x, y, yaw)`` -> ``T_world_vehicle`` on the ground plane.
+
+    Args:
+        x: position in metres (a float or a tensor; the three broadcast together).
+        y: position in metres.
+        yaw: heading in radians about the world z axis.
+        dtype: dtype of the result.
+
+    Returns:
+        ``[..., 4, 4]`` transforms, ``[4, 4]`` for scalars.
+
+    Example:
+        >>> import math
+        >>> pose_from_xy_yaw(1.0, 2.0, math.pi / 2)[:2, 3].tolist()
+        [1.0, 2.0]
+    """
     xs, ys, yaws = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=dtype) for v in (x, y, yaw)))
     t = torch.stack([xs, ys, torch.zeros_like(xs)], dim=-1)
     return make_transform(_rot_z(yaws), t)
 
 
 def xy_yaw_from_pose(T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``T_world_vehicle`` -> ``(x, y, yaw)``; roll, pitch and z are dropped."""
+    """``T_world_vehicle`` -> ``(x, y, yaw)``; roll, pitch and z are dropped.
+
+    Args:
+        T: ``[..., 4, 4]`` poses.
+
+    Returns:
+        ``(x, y, yaw)``, each ``[...]``: metres, metres, radians in (-pi, pi].
+    """
     return T[..., 0, 3], T[..., 1, 3], torch.atan2(T[..., 1, 0], T[..., 0, 0])
 
 
 def pose_from_xyz_rpy(x: float, y: float, z: float, roll: float, pitch: float, yaw: float,
                       dtype: torch.dtype = torch.float64) -> Tensor:
-    """Full 6-DoF pose, rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (ISO 8855 / aerospace order)."""
+    """Full 6-DoF pose, rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (ISO 8855 / aerospace order).
+
+    Args:
+        x: position in metres.
+        y: position in metres.
+        z: position in metres.
+        roll: rotation about x in radians.
+        pitch: rotation about y in radians.
+        yaw: rotation about z in radians.
+        dtype: dtype of the result.
+
+    Returns:
+        ``[4, 4]`` ``T_world_vehicle``.
+    """
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)
@@ -94,6 +163,12 @@ def rotation_from_quaternion(q: Tensor) -> Tensor:
     """Unit quaternion ``q[...,4]`` in (w, x, y, z) order -> rotation matrix ``[...,3,3]``.
 
     The quaternion is normalised first; a zero quaternion maps to the identity (never NaN).
+
+    Args:
+        q: ``[..., 4]`` quaternions (w, x, y, z), any norm.
+
+    Returns:
+        ``[..., 3, 3]`` rotation matrices, ``q``'s dtype.
     """
     norm = q.norm(dim=-1, keepdim=True)
     identity = torch.zeros_like(q)
@@ -109,7 +184,14 @@ def rotation_from_quaternion(q: Tensor) -> Tensor:
 
 
 def quaternion_from_rotation(R: Tensor) -> Tensor:
-    """Rotation matrix ``[...,3,3]`` -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    """Rotation matrix ``[...,3,3]`` -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method).
+
+    Args:
+        R: ``[..., 3, 3]`` rotation matrices.
+
+    Returns:
+        ``[..., 4]`` unit quaternions (w, x, y, z), the inverse of ``rotation_from_quaternion``.
+    """
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.flatten(-2).unbind(-1)
     trace = m00 + m11 + m22
     cands = torch.stack([
@@ -126,7 +208,22 @@ def quaternion_from_rotation(R: Tensor) -> Tensor:
 
 
 def as_pose(pose: Tensor | Sequence[float], dtype: torch.dtype = torch.float64) -> Tensor:
-    """Accept a 4x4 ``T_world_vehicle``, an ``(x, y, yaw)`` or an ``(x, y, z, roll, pitch, yaw)``."""
+    """Accept a 4x4 ``T_world_vehicle``, an ``(x, y, yaw)`` or an ``(x, y, z, roll, pitch, yaw)``.
+
+    Args:
+        pose: a ``[..., 4, 4]`` tensor (kept, cast to ``dtype``), or 3 or 6 numbers (a sequence or tensor).
+        dtype: dtype of the result.
+
+    Returns:
+        ``[4, 4]`` ``T_world_vehicle`` (or the given batch of 4x4 transforms).
+
+    Raises:
+        ValueError: a non-finite value, or a number of values other than 3 or 6.
+
+    Example:
+        >>> as_pose((1.0, 2.0, 0.0))[:3, 3].tolist()
+        [1.0, 2.0, 0.0]
+    """
     if isinstance(pose, Tensor) and pose.shape[-2:] == (4, 4):
         return pose.to(dtype)
     values = [float(v) for v in (pose.tolist() if isinstance(pose, Tensor) else pose)]

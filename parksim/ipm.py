@@ -49,6 +49,7 @@ def _as_nchw(image: Tensor) -> tuple[Tensor, bool, bool]:
 
 
 def _from_nchw(x: Tensor, batched: bool, squeeze_c: bool) -> Tensor:
+    """BxCxHxW -> the layout ``_as_nchw`` was given."""
     x = x.permute(0, 2, 3, 1)
     if not batched:
         x = x.squeeze(0)
@@ -61,13 +62,10 @@ class IPM:
     Each BEV pixel is a ground point (z = 0 in the vehicle frame) blended from the cameras that see
     it, weighted ``w ~ fade / d^falloff`` so the nearest, sharpest camera dominates away from seams.
 
-    Args:
-        rig: the cameras (lens models and ``T_vehicle_camera``).
-        spec: the BEV grid (default: the rig's).
-        cameras: names of the cameras to blend (default: all of the rig's).
-        edge_px: width in pixels of the smooth fade of each camera's weight at its image border and lens edge.
-        falloff: power of the ground distance in the weight.
-        dtype: float dtype of the precomputed sampling grids and weights.
+    Attributes:
+        mask: ``(spec.height, spec.width)`` bool, the BEV pixels some camera sees, outside the spec's ``ego_box``.
+        weights: per camera name, its ``(spec.height, spec.width)`` blend weight; they sum to 1 where ``mask``.
+        pixel_coords: per camera name, ``(spec.height, spec.width, 2)`` float64 pixel (u, v) of each BEV pixel.
 
     Example:
         >>> import torch
@@ -82,6 +80,19 @@ class IPM:
 
     def __init__(self, rig: Rig, spec: BEVSpec | None = None, cameras: Sequence[str] | None = None,
                  edge_px: float = 24.0, falloff: float = 4.0, dtype: torch.dtype = torch.float32) -> None:
+        """Project every BEV pixel into every camera once: the sampling grids and blend weights.
+
+        Args:
+            rig: the cameras (lens models and ``T_vehicle_camera``).
+            spec: the BEV grid (default: the rig's).
+            cameras: names of the cameras to blend (default: all of the rig's).
+            edge_px: width in pixels of the smooth fade of each camera's weight at its image border and lens edge.
+            falloff: power of the ground distance in the weight.
+            dtype: float dtype of the precomputed sampling grids and weights.
+
+        Raises:
+            ValueError: a name in ``cameras`` that the rig does not have.
+        """
         self.rig = rig
         self.spec = spec or rig.bev
         self.cameras = list(cameras) if cameras is not None else rig.names
@@ -153,6 +164,9 @@ class IPM:
         Returns:
             The BEV ``(spec.height, spec.width[, C])`` or ``(B, spec.height, spec.width, C)``, the images'
             layout and dtype; 0 where no camera sees the ground (``mask`` False).
+
+        Raises:
+            ValueError: an image is missing for one of the IPM's cameras, or is not at the rig's size.
         """
         self._check(images)
         if self._gather_applies(images):
@@ -185,8 +199,12 @@ class IPM:
         return torch.from_numpy(out).unflatten(0, (self.spec.height, self.spec.width))
 
     def _bilinear_taps(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rows, idx [n, 4], w [n, 4])`` of camera ``name``: the neighbours ``grid_sample`` reads for each tap
-        (align_corners=True, zero padding) and their bilinear weights times the blend weight."""
+        """The bilinear taps of camera ``name`` as ``grid_sample`` reads them (align_corners=True, zero padding).
+
+        Returns:
+            ``(rows [n], idx [n, 4], w [n, 4])``: the flat BEV pixel of each tap, the flat image index of its 4
+            neighbours and their bilinear weights times the blend weight (0 for a neighbour outside the image).
+        """
         if name not in self._gather_taps:
             rows, grid, weight = self._taps[name]
             model = self.rig.cameras[name].model
@@ -235,6 +253,9 @@ class IPM:
         Returns:
             Per camera name, ``(H, W[, C])`` (or ``(B, H, W, C)``) at the camera's size, the map's layout and
             dtype; 0 where the pixel's ray misses the BEV or the lens.
+
+        Raises:
+            ValueError: ``bev_map`` is not at the BEV spec's size.
         """
         expected = (self.spec.height, self.spec.width)
         hw = tuple(bev_map.shape[-3:-1]) if bev_map.ndim >= 3 else tuple(bev_map.shape)

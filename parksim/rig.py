@@ -34,6 +34,17 @@ class BEVSpec:
     ``center_x, center_y`` is the vehicle-frame ground point at the image centre, ``m_per_px``
     the ground sampling distance; ``ego_box = (x_min, x_max, y_min, y_max)`` in the vehicle
     frame is masked (the car itself). DMPR-PS uses 600 px = 10 m.
+
+    Attributes:
+        width: BEV image width in pixels.
+        height: BEV image height in pixels.
+        m_per_px: ground sampling distance in metres per pixel.
+        center_x: vehicle-frame x (m) at the image centre.
+        center_y: vehicle-frame y (m) at the image centre.
+        ego_box: ``(x_min, x_max, y_min, y_max)`` in metres, masked out; None masks nothing.
+
+    Raises:
+        CalibrationError: a non-positive size or ``m_per_px``, or an ``ego_box`` of other than 4 numbers.
     """
 
     width: int = 600
@@ -44,6 +55,7 @@ class BEVSpec:
     ego_box: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        """Check the size and scale; store ``ego_box`` as a tuple of floats."""
         if self.width <= 0 or self.height <= 0 or not self.m_per_px > 0:
             raise CalibrationError(f"BEV spec needs positive size and m_per_px, got {self}")
         if self.ego_box is not None:
@@ -60,25 +72,55 @@ class BEVSpec:
         return torch.tensor([[0.0, -s, u0], [-s, 0.0, v0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
     def pixel_to_ground(self, uv: Tensor) -> Tensor:
-        """BEV pixels ``[...,2]`` -> vehicle-frame ground ``[...,2]`` (x, y)."""
+        """BEV pixels ``[...,2]`` -> vehicle-frame ground ``[...,2]`` (x, y).
+
+        Args:
+            uv: ``[..., 2]`` BEV pixels as (column, row), pixel centres at integers.
+
+        Returns:
+            ``[..., 2]`` ground points (x, y) in metres, vehicle frame.
+        """
         u, v = uv[..., 0], uv[..., 1]
         x = self.center_x - (v - (self.height - 1) / 2) * self.m_per_px
         y = self.center_y - (u - (self.width - 1) / 2) * self.m_per_px
         return torch.stack([x, y], dim=-1)
 
     def ground_to_pixel(self, xy: Tensor) -> Tensor:
-        """Vehicle-frame ground ``[...,2]`` -> BEV pixels ``[...,2]``."""
+        """Vehicle-frame ground ``[...,2]`` -> BEV pixels ``[...,2]``.
+
+        Args:
+            xy: ``[..., 2]`` ground points (x, y) in metres, vehicle frame.
+
+        Returns:
+            ``[..., 2]`` BEV pixels as (column, row); the inverse of ``pixel_to_ground``.
+        """
         u = (self.width - 1) / 2 - (xy[..., 1] - self.center_y) / self.m_per_px
         v = (self.height - 1) / 2 - (xy[..., 0] - self.center_x) / self.m_per_px
         return torch.stack([u, v], dim=-1)
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as plain JSON values, read back by ``from_dict``.
+
+        Returns:
+            ``{field: value}`` with ``ego_box`` a list or None.
+        """
         return {"width": self.width, "height": self.height, "m_per_px": self.m_per_px,
                 "center_x": self.center_x, "center_y": self.center_y,
                 "ego_box": list(self.ego_box) if self.ego_box is not None else None}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> BEVSpec:
+        """The spec from ``to_dict``'s mapping; missing keys take the defaults.
+
+        Args:
+            d: a subset of the fields' names to values.
+
+        Returns:
+            The spec.
+
+        Raises:
+            CalibrationError: an unknown key, or values the spec refuses.
+        """
         unknown = set(d) - {"width", "height", "m_per_px", "center_x", "center_y", "ego_box"}
         if unknown:
             raise CalibrationError(f"unknown BEV spec keys {sorted(unknown)}")
@@ -87,13 +129,23 @@ class BEVSpec:
 
 @dataclass
 class RigCamera:
-    """One camera of the rig: its lens model and ``T_vehicle_camera`` (4x4, float64)."""
+    """One camera of the rig: its lens model and ``T_vehicle_camera`` (4x4, float64).
+
+    Attributes:
+        name: the camera's name in the rig.
+        model: its lens model (intrinsics).
+        T_vehicle_camera: ``(4, 4)`` float64 camera -> vehicle transform (OpenCV camera axes).
+
+    Raises:
+        CalibrationError: ``T_vehicle_camera`` is not a finite 4x4 with a proper rotation (tolerance 1e-6).
+    """
 
     name: str
     model: CameraModel
     T_vehicle_camera: Tensor
 
     def __post_init__(self) -> None:
+        """Check ``T_vehicle_camera`` and store it as a float64 tensor."""
         T = torch.as_tensor(self.T_vehicle_camera, dtype=torch.float64)
         if T.shape != (4, 4) or not torch.isfinite(T).all():
             raise CalibrationError(f"camera {self.name!r}: T_vehicle_camera must be a finite 4x4 matrix")
@@ -105,16 +157,27 @@ class RigCamera:
 
 @dataclass
 class Rig:
-    """Named cameras (insertion order kept) and the BEV spec."""
+    """Named cameras (insertion order kept) and the BEV spec.
+
+    Attributes:
+        cameras: ``{name: RigCamera}``; the order is the render order.
+        bev: the bird's-eye view that ``parksim.ipm.IPM`` and ``render(..., bev=True)`` produce.
+    """
 
     cameras: dict[str, RigCamera]
     bev: BEVSpec = field(default_factory=BEVSpec)
 
     @property
     def names(self) -> list[str]:
+        """Camera names in rig order."""
         return list(self.cameras)
 
     def to_dict(self) -> dict[str, Any]:
+        """The rig file's content, read back by ``from_dict``.
+
+        Returns:
+            ``{"cameras": {name: {"intrinsics": {...}, "T_vehicle_camera": 4x4 list}}, "bev": {...}}``.
+        """
         return {"cameras": {n: {"intrinsics": c.model.to_dict(),
                                 "T_vehicle_camera": c.T_vehicle_camera.tolist()}
                             for n, c in self.cameras.items()},
@@ -122,6 +185,18 @@ class Rig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], source: str = "rig") -> Rig:
+        """The rig from ``to_dict``'s mapping.
+
+        Args:
+            d: ``{"cameras": {name: {"intrinsics": ..., "T_vehicle_camera": 4x4}}, "bev": {...}}``.
+            source: what to name in error messages (the file it came from).
+
+        Returns:
+            The rig, cameras in the mapping's order.
+
+        Raises:
+            CalibrationError: no cameras, a camera whose intrinsics or transform are refused, or a bad BEV spec.
+        """
         if not isinstance(d, Mapping) or not isinstance(d.get("cameras"), Mapping) or not d["cameras"]:
             raise CalibrationError(f"{source}: expected a mapping with a non-empty 'cameras' mapping")
         cams = {}
@@ -138,7 +213,11 @@ class Rig:
         return cls(cams, bev)
 
     def save(self, path: str | Path) -> None:
-        """Write JSON (``.json``) or YAML (``.yaml``/``.yml``)."""
+        """Write JSON (``.json``) or YAML (``.yaml``/``.yml``).
+
+        Args:
+            path: the file; YAML for a ``.yaml``/``.yml`` suffix, JSON otherwise.
+        """
         path = Path(path)
         d = self.to_dict()
         if path.suffix in (".yaml", ".yml"):
@@ -150,6 +229,17 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | Path) -> Rig:
+        """Read a rig file that ``save`` wrote.
+
+        Args:
+            path: JSON or YAML (by suffix) rig file.
+
+        Returns:
+            The rig.
+
+        Raises:
+            CalibrationError: the file is missing, does not parse, or holds a rig ``from_dict`` refuses.
+        """
         path = Path(path)
         if not path.is_file():
             raise CalibrationError(f"{path}: rig file not found")
@@ -171,6 +261,18 @@ class Rig:
 
         Those files carry no extrinsics, so each camera's ``T_vehicle_camera`` is given
         (see ``parksim.calib.sample_rig`` to recover them from ground homographies).
+
+        Args:
+            paths: ``{camera name: YAML file}``.
+            T_vehicle_camera: ``{camera name: (4, 4) camera -> vehicle transform}`` for every camera in ``paths``.
+            bev: the BEV spec (default ``BEVSpec()``).
+            max_fov_deg: full field of view of every lens, in degrees.
+
+        Returns:
+            The rig, cameras in ``paths``' order.
+
+        Raises:
+            CalibrationError: a camera without a transform, or a file ``read_opencv_yaml`` refuses.
         """
         cams = {}
         for name, p in paths.items():
@@ -190,6 +292,18 @@ class Rig:
         WoodScape's vehicle frame is ISO 8855 on the ground under the rear-axle centre, the
         camera frame is OpenCV's, and (quaternion (x, y, z, w), translation) is camera -> vehicle:
         exactly our ``T_vehicle_camera``, so no axis change is needed.
+
+        Args:
+            paths: calibration JSON files, as a list or as ``{camera name: file}``.
+            bev: the BEV spec (default ``BEVSpec()``).
+            max_fov_deg: full field of view of every lens, in degrees.
+
+        Returns:
+            The rig, cameras in ``paths``' order.
+
+        Raises:
+            CalibrationError: a file that is missing, not JSON, lacks a key, names another camera model, or holds
+                a bad value; the message names the file.
         """
         items = paths.items() if isinstance(paths, Mapping) else [(None, p) for p in paths]
         cams = {}
@@ -219,16 +333,28 @@ class Rig:
                 name = given or d.get("name") or p.stem
             except KeyError as e:
                 raise CalibrationError(f"{p}: missing key {e.args[0]!r} in WoodScape calibration") from None
+            except CalibrationError:
+                raise
             except (TypeError, ValueError) as e:
-                if isinstance(e, CalibrationError):
-                    raise
                 raise CalibrationError(f"{p}: bad value in WoodScape calibration: {e}") from None
             cams[name] = RigCamera(name, model, make_transform(R, t))
         return cls(cams, bev or BEVSpec())
 
 
 def read_opencv_yaml(path: str | Path) -> dict[str, Any]:
-    """Read an OpenCV ``FileStorage`` YAML into ``{key: ndarray}``; errors name the file and key."""
+    """Read an OpenCV ``FileStorage`` YAML into ``{key: ndarray}``; errors name the file and key.
+
+    Args:
+        path: the YAML file (``camera_matrix``, ``dist_coeffs``, ``resolution``, possibly more).
+
+    Returns:
+        Every key of the file as a float64 array (a scalar node as a float); ``camera_matrix`` reshaped to
+        ``(3, 3)``, ``dist_coeffs`` to ``(4,)`` and ``resolution`` to ``(2,)`` as (width, height).
+
+    Raises:
+        CalibrationError: the file is missing or unreadable, or one of the three keys is missing or holds the
+            wrong number of finite values.
+    """
     import cv2
     import numpy as np
 

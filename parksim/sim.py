@@ -30,6 +30,15 @@ class LocalSim:
     """A loaded bundle that renders frames in-process; shares render()'s cached scaled rigs and IPM grids."""
 
     def __init__(self, bundle: Any, scene_id: str = "scene") -> None:
+        """Load (or take) the bundle and measure the scene's bounds.
+
+        Args:
+            bundle: a ``Bundle``, or a bundle folder to ``load``.
+            scene_id: the scene's name in ``info()`` and error messages.
+
+        Raises:
+            BundleError: a folder that ``parksim.bundle.load`` refuses.
+        """
         from .bundle import Bundle, load
 
         self.bundle: Bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
@@ -40,7 +49,14 @@ class LocalSim:
 
     @classmethod
     def from_dir(cls, directory: str | Path) -> LocalSim:
-        """Load the bundle folder ``directory``; its name is the scene id."""
+        """Load the bundle folder ``directory``; its name is the scene id.
+
+        Args:
+            directory: the bundle folder.
+
+        Returns:
+            The simulator.
+        """
         return cls(Path(directory), Path(directory).name)
 
     def _bounds(self) -> dict[str, list[float]]:
@@ -55,12 +71,19 @@ class LocalSim:
 
     @property
     def cameras(self) -> list[str]:
+        """Camera names in rig order."""
         return self.bundle.rig.names
 
     def scene_at(self, pose: Sequence[float]) -> Any:
         """The Gaussians to render at ``pose``: its visibility cell's subset when the bundle has a grid, else all.
 
         Only planar poses (z = 0, level) use a cell: the grid was measured at such poses.
+
+        Args:
+            pose: ``(x, y, yaw)`` or ``(x, y, z, roll, pitch, yaw)`` (metres, radians).
+
+        Returns:
+            A ``GaussianScene``: the cell's subset (kept for the next ``SUBSETS_KEPT`` cells) or the whole scene.
         """
         from .geometry import as_pose
         from .visibility import PLANAR_TOL
@@ -87,12 +110,32 @@ class LocalSim:
         return subset
 
     def image_size(self, camera: str, scale: float) -> tuple[int, int]:
-        """(width, height) of ``camera`` rendered at ``scale``."""
+        """(width, height) of ``camera`` rendered at ``scale``.
+
+        Args:
+            camera: a camera name of the rig.
+            scale: image size relative to the rig's camera.
+
+        Returns:
+            ``(width, height)`` in pixels, rounded.
+        """
         model = self.bundle.rig.cameras[camera].model
         return round(model.width * scale), round(model.height * scale)
 
     def check(self, cameras: Sequence[str] | None, scale: float) -> list[str]:
-        """The cameras to return (all when None); ``RequestError`` names an unknown camera or a too small scale."""
+        """The cameras to return (all when None); ``RequestError`` names an unknown camera or a too small scale.
+
+        Args:
+            cameras: the names asked for, or None for all.
+            scale: the image size asked for, relative to the rig's cameras.
+
+        Returns:
+            The camera names to render, in the order asked.
+
+        Raises:
+            RequestError: an unknown camera, a camera named twice, a scale that is not a positive finite number,
+                or one that makes a camera smaller than ``MIN_IMAGE_SIDE`` px.
+        """
         names = list(self.cameras if cameras is None else cameras)
         unknown = [n for n in names if n not in self.bundle.rig.cameras]
         if unknown:
@@ -111,14 +154,29 @@ class LocalSim:
         """Upper bound of the ``encode_npz`` size of ``poses`` frames of checked ``cameras`` (before rendering them).
 
         Pixels x channels (uint8 RGB, float32 depth) per view and pose, plus headers and ``meta``.
+
+        Args:
+            poses: frames in the reply.
+            cameras: the checked camera names (``check``).
+            bev: the reply holds the BEV.
+            scale: image size relative to the rig's cameras.
+            depth: the reply holds depth maps.
+
+        Returns:
+            Bytes, an upper bound (``frames.npz_bytes_bound``).
         """
         pixels = sum(w * h for w, h in (self.image_size(n, scale) for n in cameras))
         data = pixels * (3 + 4 * depth) + 3 * self.bundle.rig.bev.width * self.bundle.rig.bev.height * bev
         return npz_bytes_bound(poses, data, len(cameras) * (1 + depth) + bev)
 
     def info(self) -> dict[str, Any]:
-        """What ``GET /scenes/{id}`` returns: rig, image sizes, BEV spec, bounds, slot map, metadata, recorded
-        path (None for a bundle without one) and the ego footprint (``VehicleParams.extent``, as the env drives it)."""
+        """What ``GET /scenes/{id}`` returns.
+
+        Returns:
+            JSON values: ``id``, ``gaussians`` (count), ``cameras``, ``rig``, ``bev`` spec, ``bounds`` (m),
+            ``map``, ``meta``, ``recorded_path`` (None for a bundle without one) and ``footprint``, the ego's
+            ``VehicleParams.extent`` as the env drives it.
+        """
         from .vehicle import VehicleParams
 
         b = self.bundle
@@ -128,7 +186,22 @@ class LocalSim:
 
     def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
                scale: float = 1.0, depth: bool = False) -> Frame:
-        """Render ``cameras`` (all when None; the BEV needs them all, so they are all rendered then) at ``pose``."""
+        """Render ``cameras`` (all when None; the BEV needs them all, so they are all rendered then) at ``pose``.
+
+        Args:
+            pose: ``(x, y, yaw)`` or ``(x, y, z, roll, pitch, yaw)`` of the vehicle (metres, radians).
+            cameras: names of the images to return (default: all).
+            bev: also return the BEV (IPM of all cameras).
+            scale: image size relative to the rig's cameras.
+            depth: also return depth maps.
+
+        Returns:
+            The frame: uint8 ``[H, W, 3]`` images, float32 ``[H, W]`` depth (m) when asked, uint8 ``[Hb, Wb, 3]``
+            BEV when asked, and ``timings`` (s) of the views and the BEV.
+
+        Raises:
+            RequestError: as ``check``.
+        """
         from .imageio import to_uint8
         from .render import bev_ipm, render
 

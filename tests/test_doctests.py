@@ -8,8 +8,11 @@ import importlib
 
 import pytest
 
-MODULES = ["parksim.camera.base", "parksim.render.rasterize", "parksim.ipm"]
-"""Modules whose docstrings carry examples: ``CameraModel.project``/``unproject``, ``rasterize``, ``IPM``."""
+MODULES = ["parksim.camera.base", "parksim.camera.models", "parksim.geometry", "parksim.gaussians",
+           "parksim.render.rasterize", "parksim.ipm", "parksim.data.layout", "parksim.frames", "parksim.env",
+           "parksim.vehicle", "parksim.planners.geometric", "parksim.recon.config"]
+"""Modules whose docstrings carry examples: ``CameraModel.project``/``unproject``, ``rasterize``, ``IPM``, poses,
+``pixel_grid``, the lens models, the npz format, the vehicle's collision test, Dubins paths, configs."""
 
 
 @pytest.mark.parametrize("name", MODULES)

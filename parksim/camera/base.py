@@ -23,7 +23,21 @@ _FOLD_SCAN_STEPS = 4096
 
 def pixel_grid(width: int, height: int, dtype: torch.dtype = torch.float64,
                device: torch.device | str | None = None) -> Tensor:
-    """Pixel centres ``[H, W, 2]`` as (u, v) = (column, row), centres at integer coordinates."""
+    """Pixel centres ``[H, W, 2]`` as (u, v) = (column, row), centres at integer coordinates.
+
+    Args:
+        width: image width ``W`` in pixels.
+        height: image height ``H`` in pixels.
+        dtype: float dtype of the grid.
+        device: device of the grid (default: torch's default device).
+
+    Returns:
+        ``[H, W, 2]`` grid with ``grid[i, j] = (j, i)``.
+
+    Example:
+        >>> pixel_grid(3, 2)[1, 2].tolist()
+        [2.0, 1.0]
+    """
     v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device),
                           torch.arange(width, dtype=dtype, device=device), indexing="ij")
     return torch.stack([u, v], dim=-1)
@@ -41,6 +55,9 @@ def _pow2_normalised(v: Tensor) -> Tensor:
     exact: no bit of the direction is lost. Autograd sees the scale as a constant, which is right
     for the scale-invariant maps it feeds. A vector with an infinite or NaN component has no
     direction to trust: NaN, with zero gradient.
+
+    Returns:
+        ``v`` times ``2^(2 - e)``, its shape and dtype; all NaN where a component is infinite or NaN.
     """
     m = v.detach().abs().amax(-1, keepdim=True)
     finite = torch.isfinite(m) & (m > 0)
@@ -65,6 +82,22 @@ class CameraModel(ABC):
     def __init__(self, width: int, height: int, fx: float | Tensor, fy: float | Tensor,
                  cx: float | Tensor, cy: float | Tensor, k: Tensor | list[float],
                  max_fov_deg: float) -> None:
+        """Check and store the intrinsics, then find ``theta_max``.
+
+        Args:
+            width: image width in pixels.
+            height: image height in pixels.
+            fx: horizontal scale of the normalised radial image, in pixels (> 0).
+            fy: vertical scale of the normalised radial image, in pixels (> 0).
+            cx: principal point column in pixels (pixel centres at integers).
+            cy: principal point row in pixels.
+            k: ``(K,)`` the model's radial coefficients (K depends on the model, 0 for a pinhole).
+            max_fov_deg: the lens' full field of view in degrees, in (0, 360].
+
+        Raises:
+            ValueError: a non-positive image size or focal length, a non-finite intrinsic, ``max_fov_deg``
+                outside (0, 360], or a ``rho(theta)`` that does not increase at the optical axis.
+        """
         self.width = int(width)
         self.height = int(height)
         if self.width <= 0 or self.height <= 0:
@@ -87,22 +120,58 @@ class CameraModel(ABC):
     # --- what a model defines -------------------------------------------------------
     @abstractmethod
     def q(self, theta: Tensor, k: Tensor) -> Tensor:
-        """rho(theta) / theta, smooth at theta = 0."""
+        """The model's ``rho(theta) / theta``, smooth at theta = 0.
+
+        Args:
+            theta: ``(...)`` angles off the optical axis in radians.
+            k: ``(K,)`` radial coefficients (``self.k``, or a cast copy of it).
+
+        Returns:
+            ``(...)`` ``q(theta)``, ``theta``'s dtype, differentiable in ``theta`` and ``k``.
+        """
 
     @abstractmethod
     def drho(self, theta: Tensor, k: Tensor) -> Tensor:
-        """d rho / d theta."""
+        """The model's ``d rho / d theta``: where it is not positive the lens folds back.
+
+        Args:
+            theta: ``(...)`` angles off the optical axis in radians.
+            k: ``(K,)`` radial coefficients.
+
+        Returns:
+            ``(...)`` the derivative, ``theta``'s dtype.
+        """
 
     @abstractmethod
     def to_dict(self) -> dict[str, Any]:
-        """Serialisable intrinsics, read back by ``parksim.camera.camera_from_dict``."""
+        """Serialisable intrinsics, read back by ``parksim.camera.camera_from_dict``.
+
+        Returns:
+            ``{"model": name, ...}`` with the constructor's arguments as plain floats and lists.
+        """
 
     @abstractmethod
     def scaled(self, s: float) -> CameraModel:
-        """The same lens imaged at ``s`` times the resolution (pixel-centre convention)."""
+        """The same lens imaged at ``s`` times the resolution (pixel-centre convention).
+
+        Args:
+            s: resolution factor (0.5 halves width and height, rounded to whole pixels).
+
+        Returns:
+            A new model of the same class; the intrinsics are detached copies.
+        """
 
     # --- shared machinery -----------------------------------------------------------
     def rho(self, theta: Tensor, k: Tensor) -> Tensor:
+        """Normalised radial image distance ``rho(theta) = theta * q(theta)``.
+
+        Args:
+            theta: ``(...)`` angles off the optical axis in radians.
+            k: ``(K,)`` radial coefficients.
+
+        Returns:
+            ``(...)`` radial distances (pixels once scaled by ``fx, fy``).
+        """
         return theta * self.q(theta, k)
 
     def _valid_theta_max(self) -> float:
@@ -137,7 +206,14 @@ class CameraModel(ABC):
         return float(self.rho(t, self.k.detach()))
 
     def theta_of(self, points: Tensor) -> Tensor:
-        """Angle off the optical axis ``(...)`` of points ``(..., 3)``, ``atan2(r, z)``; no gradient guard (masks)."""
+        """Angle off the optical axis ``(...)`` of points ``(..., 3)``, ``atan2(r, z)``; no gradient guard (masks).
+
+        Args:
+            points: ``(..., 3)`` camera-frame points.
+
+        Returns:
+            ``(...)`` angles in [0, pi] radians; NaN for a point with an infinite or NaN coordinate.
+        """
         p = _pow2_normalised(points)
         return torch.atan2(p[..., :2].norm(dim=-1), p[..., 2])
 
@@ -156,6 +232,9 @@ class CameraModel(ABC):
         Returns:
             ``(uv, valid)``: pixels ``(..., 2)`` as (column, row) with pixel centres at integers,
             same dtype as ``points``, and a bool mask ``(...)``.
+
+        Raises:
+            ValueError: ``points`` does not end in a dimension of 3.
 
         Example:
             >>> from parksim.camera import Pinhole
@@ -198,7 +277,14 @@ class CameraModel(ABC):
         return uv, valid
 
     def in_image(self, uv: Tensor) -> Tensor:
-        """Pixel inside the image rectangle (edges at -0.5 and size - 0.5)."""
+        """Pixel inside the image rectangle (edges at -0.5 and size - 0.5).
+
+        Args:
+            uv: ``(..., 2)`` pixels as (column, row).
+
+        Returns:
+            ``(...)`` bool mask.
+        """
         u, v = uv[..., 0], uv[..., 1]
         return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
 
@@ -207,12 +293,19 @@ class CameraModel(ABC):
         return (uv[..., 0] - cx) / fx, (uv[..., 1] - cy) / fy
 
     def pixel_valid(self, uv: Tensor) -> Tensor:
-        """Pixel inside the image and inside the lens' valid circle (``theta <= theta_max``)."""
+        """Pixel inside the image and inside the lens' valid circle (``theta <= theta_max``).
+
+        Args:
+            uv: ``(..., 2)`` pixels as (column, row).
+
+        Returns:
+            ``(...)`` bool mask: the pixels whose ``unproject`` ray is the lens' own.
+        """
         mx, my = self._normalised(uv)
         return self.in_image(uv) & (mx * mx + my * my <= self.rho_max ** 2)
 
     def _solve_theta(self, rho: Tensor, k: Tensor) -> Tensor:
-        """theta with rho(theta) = rho on [0, theta_max]: Newton safeguarded by bisection."""
+        """Theta with rho(theta) = rho on [0, theta_max]: Newton safeguarded by bisection."""
         kd = k.detach()
         rho = rho.detach()
         lo = torch.zeros_like(rho)
@@ -240,6 +333,9 @@ class CameraModel(ABC):
 
         Returns:
             ``(..., 3)`` unit rays, same dtype as ``uv``.
+
+        Raises:
+            ValueError: ``uv`` does not end in a dimension of 2.
 
         Example:
             >>> from parksim.camera import Pinhole
@@ -272,4 +368,5 @@ class CameraModel(ABC):
         return ray
 
     def __repr__(self) -> str:
+        """The class name and ``to_dict()``."""
         return f"{type(self).__name__}({self.to_dict()})"

@@ -112,6 +112,24 @@ class OCamFisheye(CameraModel):
     def __init__(self, width: int, height: int, xc: float, yc: float, ss: Sequence[float] | Tensor | None = None,
                  invpol: Sequence[float] | Tensor | None = None, c: float = 1.0, d: float = 0.0, e: float = 0.0,
                  max_fov_deg: float = 360.0) -> None:
+        """OCamCalib's parameters, 0-based, as ``calib_results.txt`` lists them.
+
+        Args:
+            width: image width in pixels.
+            height: image height in pixels.
+            xc: distortion centre row in pixels (OCamCalib's ``xc``, 0-based).
+            yc: distortion centre column in pixels (OCamCalib's ``yc``, 0-based).
+            ss: ``(S,)`` cam2world polynomial, lowest degree first, ``ss[0] < 0``; None if absent.
+            invpol: ``(P,)`` world2cam polynomial, lowest degree first, at least 2 terms; None if absent.
+            c: affine diagonal term (> 0).
+            d: affine off-diagonal term.
+            e: affine off-diagonal term (``c - d e > 0``).
+            max_fov_deg: full field of view in degrees (360: no limit beyond the polynomial and the image).
+
+        Raises:
+            ValueError: neither polynomial given, too few or non-finite coefficients, ``ss[0] >= 0``, a singular
+                or flipped affine, or a polynomial that does not map rays outward at the axis.
+        """
         ss_t, invpol_t = _floats(ss, "ss", 1), _floats(invpol, "invpol", 2)
         defining = invpol_t if ss_t is None else ss_t
         if defining is None:
@@ -149,6 +167,17 @@ class OCamFisheye(CameraModel):
         """From OCamCalib's ``calib_results.txt``; ``one_based`` for a centre written MATLAB-style (from 1).
 
         A polynomial written with 0 coefficients counts as absent.
+
+        Args:
+            path: the ``calib_results.txt`` file (5 data lines: ss, invpol, centre, affine, image size).
+            one_based: subtract 1 from the centre (MATLAB's convention).
+            max_fov_deg: full field of view in degrees (the file does not state it).
+
+        Returns:
+            The camera model.
+
+        Raises:
+            ValueError: the file is malformed or its parameters are refused; the message names the file.
         """
         path = Path(path)
         try:
@@ -182,6 +211,17 @@ class OCamFisheye(CameraModel):
         """From a surround-view calibration JSON: ``img_dist_w/h``, ``cam_K`` and ``cam_dist`` under ``param``.
 
         The file is ``{name: {"param": {...}}}`` (one camera) or the ``param`` mapping itself.
+
+        Args:
+            path: the JSON file.
+            max_fov_deg: full field of view in degrees (the file does not state it).
+
+        Returns:
+            The camera model, its parameters converted to OCamCalib's (see the module docstring).
+
+        Raises:
+            ValueError: the file does not hold surround-view OCam intrinsics or they are refused; the message
+                names the file.
         """
         path = Path(path)
         try:
@@ -235,6 +275,9 @@ class OCamFisheye(CameraModel):
 
         That residual is ``|(rho, ss)| sin(theta(rho) - theta)``: its sign brackets the root, so Newton
         steps that leave the bracket are replaced by bisection. Starts from ``invpol`` when the file has it.
+
+        Returns:
+            ``theta``'s shape, float64 sensor radii in pixels, detached.
         """
         k, theta = k.detach(), theta.detach()
         dk = _polyder(k)
@@ -279,14 +322,22 @@ class OCamFisheye(CameraModel):
         return q0 - h / dh
 
     def q(self, theta: Tensor, k: Tensor) -> Tensor:
-        """rho / theta, computed in float64 and returned in ``theta``'s dtype.
+        """``rho / theta``, computed in float64 and returned in ``theta``'s dtype.
 
         Expanding ``invpol`` about the axis cancels terms of ~1e5 px, and ``ss`` has powers of ``rho``
         near 1e10: in float32 either would move pixels by tenths.
+
+        Args:
+            theta: ``(...)`` angles off the optical axis in radians.
+            k: ``(K,)`` the defining polynomial (``self.k``).
+
+        Returns:
+            ``(...)`` ``rho / theta`` in pixels per radian, ``theta``'s dtype.
         """
         return self._q64(theta.to(torch.float64), k.to(torch.float64)).to(theta.dtype)
 
     def drho(self, theta: Tensor, k: Tensor) -> Tensor:
+        """``d rho / d theta`` in float64, returned in ``theta``'s dtype (``CameraModel.drho``)."""
         t, k = theta.to(torch.float64), k.to(torch.float64)
         s = self._about_axis(k)
         if s is not None:
@@ -316,6 +367,12 @@ class OCamFisheye(CameraModel):
 
         The shared projection applies the diagonal (``fx, fy``); validity is then taken on the final
         pixel: not the camera centre, within ``theta_max`` and inside the image.
+
+        Args:
+            points: ``(..., 3)`` camera-frame points.
+
+        Returns:
+            ``(uv, valid)``: ``(..., 2)`` pixels as (column, row) and a ``(...)`` bool mask.
         """
         uv, _ = super().project(points)
         fx, fy, cx, cy, _ = self._intrinsics(points)
@@ -328,6 +385,7 @@ class OCamFisheye(CameraModel):
 
     # --- serialisation ---------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """OCamCalib's parameters: ``xc, yc``, ``ss``, ``invpol``, ``c, d, e`` (``CameraModel.to_dict``)."""
         k = [float(v) for v in self.k]
         other = None if self.other is None else [float(v) for v in self.other]
         return {"model": self.model, "width": self.width, "height": self.height,

@@ -79,9 +79,9 @@ def _named(value: Callable[[str], Any]) -> Callable[[str], tuple[str, Any]]:
 
 
 def _shown(value: Any) -> str:
-    """A default as the user would type it."""
+    """A default as the user would type it (``none`` for an empty list)."""
     if isinstance(value, (list, tuple)):
-        return ",".join(_shown(v) for v in value)
+        return ",".join(_shown(v) for v in value) or "none"
     if isinstance(value, float):
         return f"{value:g}"
     return str(value)

@@ -28,6 +28,7 @@ _DECODE_WORKERS = 8
 
 
 def _read_json(path: Path) -> Any:
+    """The parsed JSON file; DatasetError if it is missing or not JSON."""
     if not path.is_file():
         raise DatasetError(path, "file not found")
     try:
@@ -37,6 +38,7 @@ def _read_json(path: Path) -> Any:
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
+    """``cv2.imread`` (BGR); DatasetError if the file is missing or does not decode."""
     if not path.is_file():
         raise DatasetError(path, "file not found")
     img = cv2.imread(str(path), flags)
@@ -53,6 +55,15 @@ class DatasetReader:
     """
 
     def __init__(self, root: str | Path, validate: bool = True) -> None:
+        """Open a dataset directory.
+
+        Args:
+            root: the dataset directory.
+            validate: run the cheap ``validate()`` now (False defers every check to first use).
+
+        Raises:
+            DatasetError: ``root`` is not a directory, or (with ``validate``) the layout is broken.
+        """
         self.layout = DatasetLayout(root)
         if not self.layout.root.is_dir():
             raise DatasetError(self.layout.root, "dataset directory not found")
@@ -62,6 +73,7 @@ class DatasetReader:
     # --- scene-level items -------------------------------------------------------------
     @cached_property
     def rig(self) -> Rig:
+        """The cameras and the BEV spec (``rig.json``), read once; DatasetError if it is missing or invalid."""
         try:
             return Rig.load(self.layout.rig)
         except CalibrationError as e:   # its message may already start with the file's name: say it once
@@ -92,9 +104,9 @@ class DatasetReader:
                     if column is None:
                         raise DatasetError(path, f"T_world_camera[{c!r}] is null in every frame")
                     cams[c] = column
+        except DatasetError:
+            raise
         except (KeyError, TypeError, ValueError, RuntimeError) as e:
-            if isinstance(e, DatasetError):
-                raise
             raise DatasetError(path, f"expected {expected}: {e}") from None
         if ego is None and cams is None:
             raise DatasetError(path, "frames need T_world_vehicle, T_world_camera, or both")
@@ -140,14 +152,36 @@ class DatasetReader:
 
     @property
     def timestamps(self) -> list[float]:
+        """Timestamp of each frame in seconds, in pose order."""
         return self._pose_table[2]
 
     def pose(self, frame: int) -> Tensor:
-        """T_world_vehicle of one frame (see ``poses``)."""
+        """T_world_vehicle of one frame (see ``poses``).
+
+        Args:
+            frame: the frame id.
+
+        Returns:
+            ``[4, 4]`` float64 ego pose.
+
+        Raises:
+            DatasetError: no pose for ``frame``, or the dataset has per-image poses only.
+        """
         return self.poses[self._index(frame)]
 
     def camera_pose(self, camera: str, frame: int) -> Tensor:
-        """T_world_camera of one image: its own pose when the dataset has per-image poses, else ego pose x rig."""
+        """T_world_camera of one image: its own pose when the dataset has per-image poses, else ego pose x rig.
+
+        Args:
+            camera: the camera's name in the rig.
+            frame: the frame id.
+
+        Returns:
+            ``[4, 4]`` float64 camera pose (OpenCV camera axes).
+
+        Raises:
+            DatasetError: no pose for ``frame`` or none for ``camera``.
+        """
         cams = self._pose_table[3]
         if cams is not None:
             if camera not in cams:
@@ -159,13 +193,24 @@ class DatasetReader:
         """The T_world_vehicle at which ``render(..., cameras=[camera])`` puts the camera at ``camera_pose``.
 
         Equal to ``pose(frame)`` for rig datasets; per-image poses are carried through the camera's extrinsics.
+
+        Args:
+            camera: the camera's name in the rig.
+            frame: the frame id.
+
+        Returns:
+            ``[4, 4]`` float64 ``T_world_vehicle``.
         """
         if self._pose_table[3] is None:
             return self.pose(frame)
         return self.camera_pose(camera, frame) @ invert_transform(self.rig.cameras[camera].T_vehicle_camera)
 
     def camera_centres(self) -> Tensor:
-        """``[N * C, 3]`` world positions of every image's camera centre (frame-major)."""
+        """World positions of every image's camera centre (frame-major).
+
+        Returns:
+            ``[N * C, 3]`` float64 metres for N frames and C cameras.
+        """
         return torch.stack([self.camera_pose(c, f)[:3, 3] for f in self.frames for c in self.rig.names])
 
     @cached_property
@@ -183,6 +228,7 @@ class DatasetReader:
 
     @cached_property
     def meta(self) -> dict[str, Any]:
+        """``meta.json`` (generator, preset, seed, ...), or ``{}`` when there is none."""
         return _read_json(self.layout.meta) if self.layout.meta.is_file() else {}
 
     @cached_property
@@ -208,21 +254,35 @@ class DatasetReader:
 
     @property
     def has_ipm(self) -> bool:
+        """Whether the dataset has ground-truth BEV images (``ipm/``)."""
         return self.layout.ipm_dir.is_dir()
 
     @property
     def has_labels(self) -> bool:
+        """Whether the dataset has slot labels (``labels/``)."""
         return self.layout.labels_dir.is_dir()
 
     # --- per-frame items ---------------------------------------------------------------
     def _index(self, frame: int) -> int:
+        """Position of ``frame`` in ``frames``; DatasetError if it has no pose."""
         try:
             return self.frames.index(frame)
         except ValueError:
             raise DatasetError(self.layout.poses, f"no pose for frame {frame}") from None
 
     def image(self, camera: str, frame: int) -> Tensor:
-        """Fisheye image as float32 RGB in [0, 1], HxWx3."""
+        """Fisheye image as float32 RGB in [0, 1], HxWx3.
+
+        Args:
+            camera: the camera's name in the rig.
+            frame: the frame id.
+
+        Returns:
+            ``[H, W, 3]`` float32 at the rig's size for that camera.
+
+        Raises:
+            DatasetError: an unknown camera or frame, a missing or undecodable PNG, or one of the wrong size.
+        """
         if camera not in self.rig.cameras:
             raise DatasetError(self.layout.rig, f"no camera {camera!r}; the rig has {self.rig.names}")
         self._index(frame)
@@ -238,6 +298,13 @@ class DatasetReader:
 
         Reading all images up front finds a corrupt one before a long run rather than when it is first sampled;
         the first bad file in ``views`` order raises its DatasetError. ``progress`` shows a bar on stderr.
+
+        Args:
+            views: ``(frame, camera)`` pairs.
+            progress: show a progress bar on stderr.
+
+        Returns:
+            ``{(frame, camera): [H, W, 3] float32}`` in ``views`` order.
         """
         _ = self.rig, self.frames   # built once here, not raced for by the workers
         pool = ThreadPoolExecutor(min(_DECODE_WORKERS, os.cpu_count() or 1))
@@ -254,7 +321,17 @@ class DatasetReader:
             pool.shutdown(cancel_futures=True)
 
     def ipm(self, frame: int) -> Tensor:
-        """Ground-truth BEV image as float32 RGB in [0, 1], HxWx3."""
+        """Ground-truth BEV image as float32 RGB in [0, 1], HxWx3.
+
+        Args:
+            frame: the frame id.
+
+        Returns:
+            ``[Hb, Wb, 3]`` float32 at the BEV spec's size.
+
+        Raises:
+            DatasetError: an unknown frame, a missing or undecodable PNG, or one of the wrong size.
+        """
         self._index(frame)
         path = self.layout.ipm(frame)
         img = _imread(path, cv2.IMREAD_COLOR)
@@ -265,7 +342,18 @@ class DatasetReader:
         return torch.from_numpy(cv2.cvtColor(img, cv2.COLOR_BGR2RGB)).float() / 255.0
 
     def depth(self, camera: str, frame: int) -> Tensor:
-        """Distance along each pixel's ray in metres (0 = no depth), float32 HxW."""
+        """Distance along each pixel's ray in metres (0 = no depth), float32 HxW.
+
+        Args:
+            camera: the camera's name in the rig.
+            frame: the frame id.
+
+        Returns:
+            ``[H, W]`` float32 metres.
+
+        Raises:
+            DatasetError: an unknown frame, a missing or undecodable PNG, or not a single-channel 16-bit one.
+        """
         self._index(frame)
         path = self.layout.depth(camera, frame)
         d = _imread(path, cv2.IMREAD_UNCHANGED)
@@ -274,7 +362,19 @@ class DatasetReader:
         return torch.from_numpy(d.astype(np.float32) / DEPTH_SCALE)
 
     def labels(self, frame: int) -> dict[str, Any]:
-        """Slot labels (DMPR-PS form, BEV pixels); checked to lie inside the BEV and to reference real points."""
+        """Slot labels (DMPR-PS form, BEV pixels); checked to lie inside the BEV and to reference real points.
+
+        Args:
+            frame: the frame id.
+
+        Returns:
+            The label file's content: ``marks`` (``x``, ``y`` in BEV pixels, ``shape`` "T" or "L", ...) and
+            ``slots`` (``p1``, ``p2`` indices into ``marks``, ...).
+
+        Raises:
+            DatasetError: an unknown frame, a missing or malformed file, a point outside the BEV, an unknown shape,
+                or a slot naming a point that does not exist.
+        """
         self._index(frame)
         path = self.layout.labels(frame)
         data = _read_json(path)
@@ -293,15 +393,22 @@ class DatasetReader:
                     if not 0 <= int(s[key]) < len(marks):
                         raise DatasetError(path, f"slot {j} {key}={s[key]} is not one of the "
                                                  f"{len(marks)} marking points")
+        except DatasetError:
+            raise
         except (KeyError, TypeError, ValueError) as e:
-            if isinstance(e, DatasetError):
-                raise
             raise DatasetError(path, f"malformed labels: {e!r}") from None
         return data
 
     # --- checks --------------------------------------------------------------------------
     def validate(self, deep: bool = False) -> None:
-        """Check the layout: rig, poses, one image per camera and frame, no strays; ``deep`` decodes all files."""
+        """Check the layout: rig, poses, one image per camera and frame, no strays; ``deep`` decodes all files.
+
+        Args:
+            deep: also decode every image, BEV image and label file (reads the whole dataset).
+
+        Raises:
+            DatasetError: the first problem found, naming its file.
+        """
         rig, frames = self.rig, self.frames
         cams = self._pose_table[3]
         if cams is not None and sorted(cams) != sorted(rig.names):

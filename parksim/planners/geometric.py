@@ -26,6 +26,7 @@ _TWO_PI = 2 * math.pi
 
 
 def _mod(a: float) -> float:
+    """``a`` wrapped to [0, 2 pi)."""
     return a % _TWO_PI
 
 
@@ -86,7 +87,23 @@ def _sample(start: np.ndarray, word: str, lengths: tuple[float, float, float], r
 
 def dubins_paths(start: tuple[float, float, float], goal: tuple[float, float, float], radius: float,
                  step: float = 0.1) -> list[np.ndarray]:
-    """Every Dubins path (forward, turning radius ``radius``) from ``start`` to ``goal``, shortest first."""
+    """Every Dubins path (forward, turning radius ``radius``) from ``start`` to ``goal``, shortest first.
+
+    Args:
+        start: ``(x, y, yaw)`` in metres and radians.
+        goal: ``(x, y, yaw)`` in metres and radians.
+        radius: turning radius in metres.
+        step: spacing of the sampled poses in metres.
+
+    Returns:
+        Up to six paths, each ``[N, 3]`` poses ``(x, y, yaw)`` from ``start`` to ``goal`` (words whose sampled
+        end misses the goal by 5 cm or 0.02 rad are dropped).
+
+    Example:
+        >>> paths = dubins_paths((0.0, 0.0, 0.0), (3.0, 3.0, math.pi / 2), radius=2.0)
+        >>> len(paths), paths[0][-1].round(3).tolist()
+        (6, [3.0, 3.0, 1.571])
+    """
     s, g = np.asarray(start, np.float64), np.asarray(goal, np.float64)
     dx, dy = g[0] - s[0], g[1] - s[1]
     theta = math.atan2(dy, dx)
@@ -111,7 +128,17 @@ def _straight(start: np.ndarray, goal: np.ndarray, step: float) -> np.ndarray:
 
 @dataclass
 class GeometricParker:
-    """Plans a collision-free forward path into a slot and tracks it (pure pursuit + speed profile)."""
+    """Plans a collision-free forward path into a slot and tracks it (pure pursuit + speed profile).
+
+    Attributes:
+        vehicle: the car (size, turning radius, limits).
+        radius_factors: Dubins turning radii tried, as multiples of the car's minimum.
+        entry_offsets: where on the slot axis the straight run may start, metres beyond the slot entrance.
+        margin: clearance added around the footprint when checking a path (m).
+        lookahead: pure-pursuit lookahead distance (m).
+        cruise: top speed of the speed profile (m/s).
+        step: spacing of the planned poses (m).
+    """
 
     vehicle: VehicleParams = VehicleParams()
     radius_factors: tuple[float, ...] = (1.1, 1.3, 1.6)
@@ -122,15 +149,26 @@ class GeometricParker:
     step: float = 0.1
 
     def __post_init__(self) -> None:
+        """No path to follow yet."""
         self.path: np.ndarray | None = None
         self._arc: np.ndarray | None = None
         self._index = 0
 
     def _clear(self, path: np.ndarray, obstacles: Obstacles) -> bool:
+        """Whether the footprint at every second pose of ``path`` clears every box."""
         return not any(obstacles.hits(footprint(p, self.vehicle, self.margin)).any() for p in path[::2])
 
     def plan(self, pose: tuple[float, float, float], slot: dict[str, Any], obstacles: Obstacles) -> np.ndarray | None:
-        """Shortest collision-free path (N, 3) of rear-axle poses from ``pose`` to head-in parked in ``slot``."""
+        """Shortest collision-free path (N, 3) of rear-axle poses from ``pose`` to head-in parked in ``slot``.
+
+        Args:
+            pose: the car's rear-axle ``(x, y, yaw)`` (metres, radians).
+            slot: a map slot (``corners`` ``[4, 2]``).
+            obstacles: the boxes the footprint must clear.
+
+        Returns:
+            ``[N, 3]`` poses ``(x, y, yaw)`` spaced ``step`` apart, or None when no candidate clears them.
+        """
         centre, yaw = slot_pose(slot)
         x0, x1, _, _ = self.vehicle.extent
         heading = np.array([math.cos(yaw), math.sin(yaw)])
@@ -151,7 +189,15 @@ class GeometricParker:
 
     def choose_slot(self, pose: tuple[float, float, float], world_map: dict[str, Any]
                     ) -> tuple[int, np.ndarray] | None:
-        """The free slot with the shortest collision-free path from ``pose``, and that path."""
+        """The free slot with the shortest collision-free path from ``pose``, and that path.
+
+        Args:
+            pose: the car's rear-axle ``(x, y, yaw)`` (metres, radians).
+            world_map: the scene's map (``slots``, ``obstacles``).
+
+        Returns:
+            ``(slot id, path [N, 3])``, or None when no free slot can be reached.
+        """
         obstacles = Obstacles(world_map.get("obstacles", []))
         best = None
         for slot in free_slots(world_map):
@@ -161,14 +207,28 @@ class GeometricParker:
         return best
 
     def follow(self, path: np.ndarray) -> None:
-        """Start tracking ``path``."""
+        """Start tracking ``path``.
+
+        Args:
+            path: ``[N, 3]`` poses ``(x, y, yaw)``, as ``plan`` gives them.
+        """
         self.path = path
         seg = np.hypot(*np.diff(path[:, :2], axis=0).T)
         self._arc = np.concatenate([[0.0], np.cumsum(seg)])
         self._index = 0
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        """The normalised action for a privileged observation (world ``pose``, speed ``state[0]``)."""
+        """The normalised action for a privileged observation (world ``pose``, speed ``state[0]``).
+
+        Args:
+            obs: a ``ParkingEnv`` observation with ``pose`` ``[x, y, yaw]`` and ``state`` ``[v, ...]``.
+
+        Returns:
+            ``[2]`` float32 normalised ``(acceleration, steering)``.
+
+        Raises:
+            RuntimeError: no path to follow (``follow`` was not called).
+        """
         if self.path is None or self._arc is None:
             raise RuntimeError("GeometricParker.act: no path to follow; call follow(path) first")
         x, y, yaw = (float(s) for s in obs["pose"])
@@ -198,6 +258,19 @@ def run_episode(env: gym.Env, seed: int, parker: GeometricParker | None = None,
     """Reset with ``seed``, pick the free slot with the best path, drive into it; returns the final info + steps.
 
     ``env`` is a privileged ``ParkingEnv``, bare or wrapped (``gym.make``: its ``TimeLimit`` ends a stuck episode).
+
+    Args:
+        env: the environment.
+        seed: the reset seed (the start pose).
+        parker: the planner (default: a ``GeometricParker`` for the env's vehicle).
+        on_step: called with the unwrapped env after every step (to record or draw).
+
+    Returns:
+        The final step's info, plus ``steps`` and ``planned`` (False, with 0 steps, when no path cleared the
+        obstacles).
+
+    Raises:
+        ValueError: ``env`` is not a privileged ``ParkingEnv``.
     """
     park = env.unwrapped
     if not isinstance(park, ParkingEnv) or not park.privileged:

@@ -137,7 +137,21 @@ class PoseRefineConfig(_Strict):
 
 
 class TrainConfig(_Strict):
-    """Everything ``parksim reconstruct`` needs besides the data."""
+    """Everything ``parksim reconstruct`` needs besides the data.
+
+    Attributes:
+        run: seed, batch, renderer, logging and checkpoint cadence.
+        init: where the initial Gaussians come from.
+        lr: Adam learning rates per attribute.
+        photometric: phase 1 (L1 + D-SSIM on the fisheye images).
+        slot_aware: phase 2 (slot-aware losses on the BEV).
+        densify: densification strategy (MCMC or ADC).
+        pose_opt: learned pose and extrinsics corrections.
+
+    Example:
+        >>> TrainConfig().schedule_iterations, load_config("tiny").run.seed
+        (30000, 0)
+    """
 
     run: RunConfig = RunConfig()
     init: InitConfig = InitConfig()
@@ -171,7 +185,18 @@ def _format_errors(err: ValidationError) -> str:
 
 
 def parse_config(data: object, source: str) -> TrainConfig:
-    """Validate a mapping as a ``TrainConfig``; ``source`` names it in errors."""
+    """Validate a mapping as a ``TrainConfig``; ``source`` names it in errors.
+
+    Args:
+        data: the parsed YAML (None counts as empty: all defaults).
+        source: what to name in error messages (the file).
+
+    Returns:
+        The validated config.
+
+    Raises:
+        ConfigError: not a mapping, or a key or value the models refuse (one ``key.path: message`` per problem).
+    """
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -183,7 +208,11 @@ def parse_config(data: object, source: str) -> TrainConfig:
 
 
 def preset_names() -> list[str]:
-    """Names of the packaged presets (``tiny``, ``demo``, ``cpu_fast``, ...), sorted."""
+    """Names of the packaged presets (``tiny``, ``demo``, ``cpu_fast``, ...), sorted.
+
+    Returns:
+        The YAML file stems under ``PRESETS_DIR``.
+    """
     return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
 
 
@@ -191,6 +220,15 @@ def resolve_config(spec: str | Path) -> Path:
     """The YAML file that ``spec`` names: an existing file path, else a packaged preset by name.
 
     A path wins over a preset of the same name, so a user's ``tiny.yaml`` in the working folder is theirs.
+
+    Args:
+        spec: a file path, or a preset name (with or without ``.yaml``).
+
+    Returns:
+        The YAML file.
+
+    Raises:
+        ConfigError: neither an existing file nor a packaged preset.
     """
     path = Path(spec)
     if path.is_file():
@@ -202,7 +240,17 @@ def resolve_config(spec: str | Path) -> Path:
 
 
 def load_config(path: str | Path) -> TrainConfig:
-    """Read and validate a YAML config file, given by path or by packaged preset name."""
+    """Read and validate a YAML config file, given by path or by packaged preset name.
+
+    Args:
+        path: a YAML file or a preset name (``resolve_config``).
+
+    Returns:
+        The validated config.
+
+    Raises:
+        ConfigError: the file is missing, not YAML, or does not validate.
+    """
     path = resolve_config(path)
     try:
         data = yaml.safe_load(path.read_text())
@@ -212,5 +260,12 @@ def load_config(path: str | Path) -> TrainConfig:
 
 
 def dump_config(config: TrainConfig) -> str:
-    """The config as YAML text (every field, so the file documents the run)."""
+    """The config as YAML text (every field, so the file documents the run).
+
+    Args:
+        config: the config.
+
+    Returns:
+        YAML that ``load_config`` reads back to an equal config.
+    """
     return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

@@ -61,6 +61,23 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
     ends the run early (as a kill would, after a checkpoint) and writes no bundle. ``start_from`` names a
     finished photometric run (its folder, checkpoint kept) whose state this run continues from: only the
     slot-aware iterations are trained, so variants share one photometric phase.
+
+    Args:
+        data_dir: the dataset folder (``parksim.data`` layout).
+        out_dir: the run's folder: config, checkpoints, metrics and, at the end, the bundle.
+        config_path: a YAML file or a packaged preset name (default: ``TrainConfig()``, the paper's numbers).
+        resume: continue the run in ``out_dir`` from its last checkpoint, with the config it started with.
+        stop_after: stop after this iteration (as a kill would) and write no bundle.
+        log: receives one line per progress message.
+        start_from: a finished photometric run's folder to continue the slot-aware phase from.
+
+    Returns:
+        ``out_dir`` as a Path.
+
+    Raises:
+        ValueError: ``resume`` with ``start_from``; a fresh run into a folder that holds one; a resumed run given
+            another config; ``start_from`` without a slot-aware phase. ``DatasetError`` and ``ConfigError`` (both
+            ValueErrors) for a broken dataset or config.
     """
     out_dir = Path(out_dir)
     if resume and start_from is not None:

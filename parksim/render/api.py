@@ -43,6 +43,12 @@ class RenderResult:
     """Per-camera ``images`` (HxWx3 in [0,1]), ``alpha`` (HxW), ``depth`` and optional ``bev`` (HxWx3).
 
     ``depth`` is the alpha-normalised expected distance from the camera centre (0 where nothing is hit).
+
+    Attributes:
+        images: per camera name, ``(H, W, 3)`` RGB in [0, 1]; ``bg`` outside the lens circle.
+        alpha: per camera name, ``(H, W)`` coverage ``1 - final transmittance``; 0 outside the lens circle.
+        depth: per camera name, ``(H, W)`` distance in metres from the camera centre.
+        bev: ``(Hb, Wb, 3)`` IPM of the rendered views in the rig's BEV spec, or None when not asked for.
     """
 
     images: dict[str, Tensor]
@@ -61,8 +67,13 @@ class _RigView:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def lens_mask(self, name: str, device: torch.device = torch.device("cpu")) -> Tensor:
-        """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing), kept on
-        ``device`` so that a GPU render does not copy it every call."""
+        """Pixels inside camera ``name``'s valid image circle (outside it a lens records nothing).
+
+        Kept on ``device`` so that a GPU render does not copy it every call.
+
+        Returns:
+            ``(H, W)`` bool mask on ``device``.
+        """
         key = (name, device)
         if key not in self.lens:
             m = self.rig.cameras[name].model
@@ -94,7 +105,19 @@ def _rig_view(rig: Rig, scale: float, names: tuple[str, ...]) -> _RigView:
 
 
 def bev_ipm(rig: Rig, scale: float = 1.0, cameras: Sequence[str] | None = None) -> IPM:
-    """The IPM that ``render(..., bev=True)`` uses for these cameras at ``scale``: built once, then shared."""
+    """The IPM that ``render(..., bev=True)`` uses for these cameras at ``scale``: built once, then shared.
+
+    Args:
+        rig: the rig (cached by identity: do not change a rig once rendered).
+        scale: image size relative to the rig's cameras, as given to ``render``.
+        cameras: the cameras the BEV blends (default: all of the rig's).
+
+    Returns:
+        The IPM from those cameras at that scale into ``rig.bev``; the same object on every call.
+
+    Raises:
+        KeyError: a camera name the rig does not have.
+    """
     view = _rig_view(rig, float(scale), tuple(cameras) if cameras is not None else tuple(rig.names))
     with view.lock:
         if view.ipm is None:
@@ -133,6 +156,9 @@ def _composite_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_ca
     """Inference path: each camera's ``(image, alpha, depth)`` from one projection pass and the CPU compositor.
 
     Projected rows and compositor planes are scratch memory reused by the next render; ``finish`` copies.
+
+    Returns:
+        Per camera, in ``cams``' order, ``(image [H, W, 3], alpha [H, W], depth [H, W])`` in the scene's dtype.
     """
     proj = project_views_fused(scene.means, scene.quats, scene.log_scales, torch.sigmoid(scene.opacity_logits),
                                scene.sh, scene.sh_degree, [invert_transform(T) for T in T_world_cameras],

@@ -59,6 +59,14 @@ class UTParams:
     ``benchmarks/RESULTS_ut.md``. Gaussians with ``sigma_max / distance > adaptive_min_rel_size``
     whose centre is more than ``adaptive_min_theta_deg`` off the axis are blended into the
     fifth-degree set (fully at twice the size and 10 deg further out); ``adaptive=False`` turns it off.
+
+    Attributes:
+        alpha: spread of the sigma points.
+        beta: prior-knowledge term of the centre's covariance weight (2 is optimal for Gaussians).
+        kappa: secondary scaling.
+        adaptive: blend large Gaussians near the lens edge into the 19-point set.
+        adaptive_min_theta_deg: angle off the axis (degrees) where the blend starts.
+        adaptive_min_rel_size: ``sigma_max / distance`` where the blend starts.
     """
 
     alpha: float = 1.0
@@ -71,7 +79,13 @@ class UTParams:
 
 @dataclass(frozen=True)
 class SigmaPoints:
-    """Standard-normal sigma points ``z[P, 3]`` (row 0 the centre) with mean and covariance weights."""
+    """Standard-normal sigma points ``z[P, 3]`` (row 0 the centre) with mean and covariance weights.
+
+    Attributes:
+        z: ``[P, 3]`` float64 points of N(0, I_3).
+        wm: ``[P]`` float64 weights of the mean.
+        wc: ``[P]`` float64 weights of the covariance.
+    """
 
     z: Tensor
     wm: Tensor
@@ -80,7 +94,19 @@ class SigmaPoints:
     @staticmethod
     @lru_cache(maxsize=16)
     def unscented(alpha: float, beta: float, kappa: float) -> SigmaPoints:
-        """The 2n+1 scaled unscented set (Julier, Wan & van der Merwe), n = 3."""
+        """The 2n+1 scaled unscented set (Julier, Wan & van der Merwe), n = 3.
+
+        Args:
+            alpha: spread of the points around the centre.
+            beta: added to the centre's covariance weight.
+            kappa: secondary scaling.
+
+        Returns:
+            The 7 points (cached per parameter triple).
+
+        Raises:
+            ValueError: ``alpha^2 (3 + kappa) <= 0``.
+        """
         n = 3
         lam = alpha * alpha * (n + kappa) - n
         if not n + lam > 0:
@@ -100,6 +126,9 @@ class SigmaPoints:
 
         Exact for polynomials up to degree 5, so the covariance of a locally quadratic projection
         is exact (the 7-point UT matches 3rd moments only); positive weights keep it PSD.
+
+        Returns:
+            The 19 points, mean and covariance weights equal (cached).
         """
         n = 3
         pts = [torch.zeros(n, dtype=torch.float64)]
@@ -129,6 +158,15 @@ class Projected2D:
     ``conics`` and ``cov2d`` are ``(a, b, c)`` of ``[[a, b], [b, c]]`` (inverse and forward 2D
     covariance), ``depths`` the distance ``|p|`` from the camera centre, ``radii`` the 3-sigma
     pixel radius, ``valid`` whether the footprint is finite and overlaps the image.
+
+    Attributes:
+        index: ``[M]`` int64 rows of the input that survived culling.
+        means2d: ``[M, 2]`` pixel centres (u, v).
+        conics: ``[M, 3]`` inverse 2D covariances ``(a, b, c)`` in 1/px^2.
+        cov2d: ``[M, 3]`` 2D covariances ``(a, b, c)`` in px^2, blurred and clamped.
+        depths: ``[M]`` distances from the camera centre (m).
+        radii: ``[M]`` 3-sigma radii in whole pixels.
+        valid: ``[M]`` bool: finite and overlapping the image.
     """
 
     index: Tensor
@@ -141,7 +179,16 @@ class Projected2D:
 
 
 def covariance_sqrt(quats: Tensor, log_scales: Tensor, R_cam_world: Tensor | None = None) -> Tensor:
-    """``L[N,3,3]`` with ``Sigma_cam = L L^T = R_cw R(q) S^2 R(q)^T R_cw^T``; zero quaternions act as identity."""
+    """``L[N,3,3]`` with ``Sigma_cam = L L^T = R_cw R(q) S^2 R(q)^T R_cw^T``; zero quaternions act as identity.
+
+    Args:
+        quats: ``[N, 4]`` rotations (w, x, y, z), any norm.
+        log_scales: ``[N, 3]`` log standard deviations (m).
+        R_cam_world: ``[3, 3]`` world -> camera rotation; None keeps the world frame.
+
+    Returns:
+        ``[N, 3, 3]`` square roots of the covariances (not triangular).
+    """
     L = rotation_from_quaternion(quats) * torch.exp(log_scales)[..., None, :]
     return L if R_cam_world is None else R_cam_world.to(L) @ L
 
@@ -157,7 +204,18 @@ def _cholesky_sqrt(covs: Tensor) -> Tensor:
 
 @torch.no_grad()
 def cull_mask(means_cam: Tensor, sigma_max: Tensor, camera: CameraModel, near: float, far: float) -> Tensor:
-    """Gaussians possibly visible: distance in ``[near, far]`` and 3-sigma cone reaching ``theta_max``."""
+    """Gaussians possibly visible: distance in ``[near, far]`` and 3-sigma cone reaching ``theta_max``.
+
+    Args:
+        means_cam: ``[N, 3]`` camera-frame centres (m).
+        sigma_max: ``[N]`` largest standard deviation of each Gaussian (m).
+        camera: the lens (its ``theta_max``).
+        near: closest distance kept (m).
+        far: farthest distance kept (m).
+
+    Returns:
+        ``[N]`` bool mask, no gradient.
+    """
     dist = means_cam.norm(dim=-1)
     in_range = (dist >= near) & (dist <= far)
     ratio = torch.clamp(_EXTENT_SIGMAS * sigma_max / torch.clamp_min(dist, near), max=1.0)
@@ -184,6 +242,9 @@ def _ut(mu: Tensor, L: Tensor, sigma_max: Tensor, camera: CameraModel, p: UTPara
     The blend weight ramps from 0 to 1 over ``_BLEND_THETA_DEG`` past the angle threshold and from
     1x to 2x the size threshold, so the footprint stays continuous (and gradcheck-able) in the
     Gaussian's parameters.
+
+    Returns:
+        ``(mean [M, 2], cov [M, 3])``: pixel means and 2D covariances ``(a, b, c)``, before blur and clamping.
     """
     mean, cov = _sigma_point_moments(mu, L, camera, SigmaPoints.unscented(p.alpha, p.beta, p.kappa))
     if not p.adaptive or len(mu) == 0:
@@ -221,6 +282,9 @@ def _clamp_eigenvalues(cov: Tensor, lo: float, hi: float) -> Tensor:
 
     Uses ``f(A) = f(l2) I + (f(l1) - f(l2)) / (l1 - l2) (A - l2 I)``, which needs no eigenvectors
     and stays finite (value and gradient) for isotropic matrices.
+
+    Returns:
+        ``[..., 3]`` the clamped ``(a, b, c)``.
     """
     a, b, c = cov.unbind(-1)
     mid, half = 0.5 * (a + c), 0.5 * (a - c)
@@ -238,7 +302,18 @@ def _clamp_eigenvalues(cov: Tensor, lo: float, hi: float) -> Tensor:
 
 
 def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bool = True) -> FusedUTConfig:
-    """This module's UT rules and limits, as the fused kernels take them."""
+    """This module's UT rules and limits, as the fused kernels take them.
+
+    Args:
+        params: sigma-point set and adaptive rule.
+        near: closest distance kept (m).
+        far: farthest distance kept (m).
+        cap: largest 3-sigma footprint radius in pixels.
+        cull: False keeps every Gaussian.
+
+    Returns:
+        The kernels' configuration.
+    """
     ut, fifth = SigmaPoints.unscented(params.alpha, params.beta, params.kappa), SigmaPoints.fifth_degree()
     return FusedUTConfig((ut.z, ut.wm, ut.wc), (fifth.z, fifth.wm, fifth.wc), params.adaptive,
                          math.radians(params.adaptive_min_theta_deg), math.radians(_BLEND_THETA_DEG),
@@ -257,6 +332,26 @@ def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Ten
     ``backend`` "auto" runs UT with ``(quats, log_scales, R)`` on CPU float tensors through the fused
     kernel (``project_fast``, same results), everything else here; "torch" forces this module's path.
     ``cull`` False projects every Gaussian (only to measure what culling saves).
+
+    Args:
+        means_cam: ``[N, 3]`` centres in the camera frame (m).
+        cov: ``[N, 3, 3]`` camera-frame covariances, or ``(quats [N, 4], log_scales [N, 3], R_cam_world [3, 3] |
+            None)``.
+        camera: the lens model.
+        method: "ut" (unscented transform through ``camera.project``) or "ewa" (its Jacobian).
+        ut_params: sigma-point set and adaptive rule (default ``UTParams()``).
+        near: closest distance kept (m).
+        far: farthest distance kept (m).
+        max_radius: cap of the 3-sigma radius in pixels (default: the image's larger side).
+        backend: one of ``BACKENDS``.
+        cull: False projects every Gaussian.
+
+    Returns:
+        The M surviving Gaussians in 2D; rows with ``valid`` False are finite but should not be drawn.
+
+    Raises:
+        ValueError: an unknown ``method`` or ``backend``, or ``backend="fused"`` where the fused kernel does not
+            apply.
     """
     if method not in ("ut", "ewa"):
         raise ValueError(f"project_gaussians: method must be 'ut' or 'ewa', got {method!r}")

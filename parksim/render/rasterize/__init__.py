@@ -22,7 +22,18 @@ __all__ = ["rasterize", "rasterize_reference", "resolve_backend", "BACKENDS", "A
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
-    """Map "auto" to "gsplat" for CUDA tensors when gsplat is importable, else to "numba"."""
+    """Map "auto" to "gsplat" for CUDA tensors when gsplat is importable, else to "numba".
+
+    Args:
+        backend: one of ``BACKENDS``.
+        device: the device of the tensors to rasterize.
+
+    Returns:
+        The backend that will run: "torch", "numba" or "gsplat" (others pass through unchanged).
+
+    Raises:
+        ValueError: ``backend`` is not one of ``BACKENDS``.
+    """
     if backend not in BACKENDS:
         raise ValueError(f"unknown rasterizer backend {backend!r}; choose one of {BACKENDS}")
     if backend != "auto":
@@ -71,6 +82,9 @@ def rasterize(
         ``(rgb, alpha, depth)``: ``(H, W, 3)``, ``(H, W)`` with alpha = 1 - final transmittance, and ``(H, W)``
         the unnormalised expected depth ``sum_i d_i alpha_i T_i`` (divide by alpha for the mean depth of
         covered pixels); the inputs' dtype.
+
+    Raises:
+        ValueError: an input whose shape is not one row per Gaussian as above, or an unknown ``backend``.
 
     Example:
         >>> import torch

@@ -16,7 +16,15 @@ __all__ = ["rasterize_reference", "max_weights_reference", "gaussian_is_drawable
 
 
 def gaussian_is_drawable(conics: Tensor, opacities: Tensor) -> Tensor:
-    """[M] bool: conic positive definite and finite, and opacity able to reach ALPHA_MIN; others are culled."""
+    """[M] bool: conic positive definite and finite, and opacity able to reach ALPHA_MIN; others are culled.
+
+    Args:
+        conics: ``[M, 3]`` inverse 2D covariances ``(a, b, c)``.
+        opacities: ``[M]`` in [0, 1].
+
+    Returns:
+        ``[M]`` bool mask of the Gaussians every backend draws.
+    """
     a, b, c = conics.unbind(-1)
     finite = torch.isfinite(conics).all(-1) & torch.isfinite(opacities)
     return finite & (a > 0) & (a * c - b * b > 0) & (opacities >= ALPHA_MIN)
@@ -59,6 +67,20 @@ def rasterize_reference(
     Same semantics as the fast kernels: alpha = min(ALPHA_MAX, o exp(power)), pairs with alpha < ALPHA_MIN
     skipped, and a pixel stops before the Gaussian that would push its transmittance below T_MIN.
     depth is the unnormalised expected depth sum_i d_i alpha_i T_i (divide by alpha for a mean depth).
+
+    Args:
+        means2d: ``[M, 2]`` centres in pixels (u, v).
+        conics: ``[M, 3]`` inverse 2D covariances ``(a, b, c)`` in 1/px^2.
+        colors: ``[M, 3]`` RGB.
+        opacities: ``[M]`` in [0, 1].
+        depths: ``[M]`` sort keys, also what ``depth`` averages.
+        width: image width ``W`` in pixels.
+        height: image height ``H`` in pixels.
+        bg: ``[3]`` background behind the remaining transmittance; None for black.
+        chunk_pixels: pixels per dense ``[P, M]`` block (memory ~ ``chunk_pixels * M`` per tensor).
+
+    Returns:
+        ``(rgb [H, W, 3], alpha [H, W], depth [H, W])`` in ``means2d``'s dtype, differentiable by autograd.
     """
     dtype, device = means2d.dtype, means2d.device
     order = _depth_sorted(conics, opacities, depths)
@@ -87,6 +109,18 @@ def max_weights_reference(means2d: Tensor, conics: Tensor, opacities: Tensor, de
     """[M]: each Gaussian's largest blending weight alpha * T over the pixels, the oracle of ``contribution``.
 
     The Gaussian at which a pixel stops counts with the weight it would have had (see ``contribution``).
+
+    Args:
+        means2d: ``[M, 2]`` centres in pixels (u, v).
+        conics: ``[M, 3]`` inverse 2D covariances ``(a, b, c)``.
+        opacities: ``[M]`` in [0, 1].
+        depths: ``[M]`` sort keys.
+        width: image width in pixels.
+        height: image height in pixels.
+        chunk_pixels: pixels per dense block.
+
+    Returns:
+        ``[M]`` largest weights, 0 for a Gaussian that is never drawn.
     """
     order = _depth_sorted(conics, opacities, depths)
     mean, conic, opac = means2d[order], conics[order], opacities[order]
