@@ -30,6 +30,14 @@ def test_dubins_paths_reach_the_goal_with_bounded_curvature(gx, gy, gyaw, syaw):
         assert (turn <= step / 4.0 + 1e-6).all()
 
 
+def test_dubins_zero_arc_rounded_below_zero_is_not_a_full_loop():
+    """A quarter turn whose straight and second arc are zero up to rounding (-1e-16) is a quarter circle, pi r / 2,
+    not that plus a 2 pi r loop."""
+    shortest = dubins_paths((0.0, 0.0, 0.0), (2.0, 2.0, math.pi / 2), 2.0, step=0.01)[0]
+    length = np.hypot(*np.diff(shortest[:, :2], axis=0).T).sum()
+    assert abs(length - math.pi) < 1e-3, length
+
+
 @pytest.fixture(scope="module")
 def env(tmp_path_factory):
     bundle = make_bundle(tmp_path_factory.mktemp("planner") / "tiny", n=300, bev_px=64)

@@ -10,6 +10,7 @@ on the goal. The example of closed-loop use; not an optimal planner (forward mov
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -25,39 +26,56 @@ __all__ = ["GeometricParker", "dubins_paths", "run_episode"]
 _TWO_PI = 2 * math.pi
 
 
+_ZERO_ARC = 1e-6
+"""Radians: a wrapped arc this close below 2 pi is a zero arc that rounding pushed below 0 (a -1e-16 arc wraps to
+2 pi - 1e-16, a full extra loop). Arcs that pass through ``sqrt`` of a rounded ``p^2`` carry errors of
+~sqrt(eps) ~ 1e-8 (``_root``); a real arc of 1e-6 rad is micrometres at a turning radius of metres."""
+
+
 def _mod(a: float) -> float:
-    """``a`` wrapped to [0, 2 pi)."""
-    return a % _TWO_PI
+    """``a`` wrapped to [0, 2 pi), with arcs within ``_ZERO_ARC`` below 2 pi taken as 0."""
+    wrapped = a % _TWO_PI
+    return 0.0 if _TWO_PI - wrapped < _ZERO_ARC else wrapped
+
+
+def _rounding(d: float) -> float:
+    """Bound of the rounding error of the ``p^2`` and ``8 c`` sums of ``_words`` at normalised distance ``d``:
+    16 eps times the magnitude of their terms (4 + d^2 + 4 d)."""
+    return 16 * sys.float_info.epsilon * (4 + d * d + 4 * d)
+
+
+def _root(p2: float, d: float) -> float | None:
+    """``sqrt(p2)``, with a ``p2`` below 0 by no more than its rounding error taken as 0; None where the word
+    does not exist."""
+    return math.sqrt(max(p2, 0.0)) if p2 >= -_rounding(d) else None
 
 
 def _words(alpha: float, beta: float, d: float) -> dict[str, tuple[float, float, float] | None]:
     """Normalised Dubins segment lengths (t, p, q) of the six words, None where a word does not exist."""
     sa, sb, ca, cb, cab = math.sin(alpha), math.sin(beta), math.cos(alpha), math.cos(beta), math.cos(alpha - beta)
     out: dict[str, tuple[float, float, float] | None] = {}
-    p2 = 2 + d * d - 2 * cab + 2 * d * (sa - sb)
+    p = _root(2 + d * d - 2 * cab + 2 * d * (sa - sb), d)
     tmp = math.atan2(cb - ca, d + sa - sb)
-    out["LSL"] = (_mod(-alpha + tmp), math.sqrt(p2), _mod(beta - tmp)) if p2 >= 0 else None
-    p2 = 2 + d * d - 2 * cab + 2 * d * (sb - sa)
+    out["LSL"] = (_mod(-alpha + tmp), p, _mod(beta - tmp)) if p is not None else None
+    p = _root(2 + d * d - 2 * cab + 2 * d * (sb - sa), d)
     tmp = math.atan2(ca - cb, d - sa + sb)
-    out["RSR"] = (_mod(alpha - tmp), math.sqrt(p2), _mod(-beta + tmp)) if p2 >= 0 else None
-    p2 = -2 + d * d + 2 * cab + 2 * d * (sa + sb)
-    if p2 >= 0:
-        p = math.sqrt(p2)
+    out["RSR"] = (_mod(alpha - tmp), p, _mod(-beta + tmp)) if p is not None else None
+    p = _root(-2 + d * d + 2 * cab + 2 * d * (sa + sb), d)
+    if p is not None:
         tmp = math.atan2(-ca - cb, d + sa + sb) - math.atan2(-2.0, p)
         out["LSR"] = (_mod(-alpha + tmp), p, _mod(-beta + tmp))
-    p2 = -2 + d * d + 2 * cab - 2 * d * (sa + sb)
-    if p2 >= 0:
-        p = math.sqrt(p2)
+    p = _root(-2 + d * d + 2 * cab - 2 * d * (sa + sb), d)
+    if p is not None:
         tmp = math.atan2(ca + cb, d - sa - sb) - math.atan2(2.0, p)
         out["RSL"] = (_mod(alpha - tmp), p, _mod(beta - tmp))
     c = (6 - d * d + 2 * cab + 2 * d * (sa - sb)) / 8
-    if abs(c) <= 1:
-        p = _mod(_TWO_PI - math.acos(c))
+    if abs(c) <= 1 + _rounding(d) / 8:
+        p = _mod(_TWO_PI - math.acos(min(max(c, -1.0), 1.0)))
         t = _mod(alpha - math.atan2(ca - cb, d - sa + sb) + p / 2)
         out["RLR"] = (t, p, _mod(alpha - beta - t + p))
     c = (6 - d * d + 2 * cab + 2 * d * (sb - sa)) / 8
-    if abs(c) <= 1:
-        p = _mod(_TWO_PI - math.acos(c))
+    if abs(c) <= 1 + _rounding(d) / 8:
+        p = _mod(_TWO_PI - math.acos(min(max(c, -1.0), 1.0)))
         t = _mod(-alpha - math.atan2(ca - cb, d + sa - sb) + p / 2)
         out["LRL"] = (t, p, _mod(beta - alpha - t + p))
     return out
