@@ -39,14 +39,27 @@ def _mod(a: float) -> float:
 
 
 def _rounding(d: float) -> float:
-    """Bound of the rounding error of the ``p^2`` and ``8 c`` sums of ``_words`` at normalised distance ``d``:
-    16 eps times the magnitude of their terms (4 + d^2 + 4 d)."""
+    """Bound of the rounding error of the ``p^2`` and ``8 c`` sums of ``_words``.
+
+    Args:
+        d: distance between start and goal over the turning radius.
+
+    Returns:
+        16 eps times the magnitude of the sums' terms, 4 + d^2 + 4 d.
+    """
     return 16 * sys.float_info.epsilon * (4 + d * d + 4 * d)
 
 
 def _root(p2: float, d: float) -> float | None:
-    """``sqrt(p2)``, with a ``p2`` below 0 by no more than its rounding error taken as 0; None where the word
-    does not exist."""
+    """``sqrt(p2)`` of a Dubins word's squared straight length, rounding below 0 forgiven.
+
+    Args:
+        p2: the word's ``p^2`` as computed.
+        d: distance between start and goal over the turning radius (sets the rounding bound, ``_rounding``).
+
+    Returns:
+        ``sqrt(max(p2, 0))`` when ``p2`` is at least minus its rounding bound, else None (the word does not exist).
+    """
     return math.sqrt(max(p2, 0.0)) if p2 >= -_rounding(d) else None
 
 
