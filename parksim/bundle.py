@@ -44,6 +44,13 @@ def recorded_path(poses: np.ndarray, points: int = RECORDED_PATH_POINTS) -> list
     """The dataset's ego path ``[[x, y, yaw], ...]`` from ``T_world_vehicle`` [N, 4, 4], at most ``points`` of them.
 
     Evenly spaced frames, first and last kept: where the cameras drove, so viewers can start and stay there.
+
+    Args:
+        poses: ``[N, 4, 4]`` ``T_world_vehicle`` per frame (array-like).
+        points: most poses to keep.
+
+    Returns:
+        ``min(N, points)`` rows ``[x, y, yaw]`` (metres, radians) as plain lists, in frame order.
     """
     poses = np.asarray(poses, dtype=np.float64)
     keep = np.unique(np.linspace(0, len(poses) - 1, min(len(poses), points)).round().astype(np.int64))
@@ -62,6 +69,17 @@ class Bundle:
 
     ``meta["visibility"]`` names the grid's file and is kept in step with ``visibility`` by ``save``;
     ``poses`` (poses.json) are the refined training poses when pose refinement ran (``rig`` is then refined too).
+
+    Attributes:
+        scene: the Gaussians (world frame).
+        rig: the cameras and the BEV spec.
+        map: world-frame slots, marking points and obstacles (map.json), or None.
+        meta: bundle.json without its ``version``.
+        visibility: per-region visibility grid, or None.
+        poses: poses.json's content, or None.
+
+    Raises:
+        BundleError: the scene's shapes or values are invalid (``GaussianScene.validate``).
     """
 
     scene: GaussianScene
@@ -72,6 +90,7 @@ class Bundle:
     poses: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
+        """Validate the scene once, as it is loaded or built."""
         try:
             self.scene.validate()
         except ValueError as e:
@@ -79,17 +98,29 @@ class Bundle:
 
     @property
     def projection(self) -> str:
-        """The projection the Gaussians were trained with, and so must be rendered with (``run.projection``: "ut"
-        or "ewa"; bundles from before it: "ut"). An EWA-trained scene rendered with UT scored 12 dB lower."""
+        """The projection the Gaussians were trained with, and so must be rendered with: "ut" or "ewa".
+
+        Read from ``run.projection``; bundles from before it: "ut". An EWA-trained scene rendered with UT
+        scored 12 dB lower.
+        """
         return str(self.meta.get("projection", "ut"))
 
     @property
     def bev(self) -> BEVSpec:
+        """The rig's BEV spec."""
         return self.rig.bev
 
 
 def save(directory: str | Path, bundle: Bundle) -> Path:
-    """Write ``bundle`` into ``directory`` (created if needed); other files there are left alone."""
+    """Write ``bundle`` into ``directory`` (created if needed); other files there are left alone.
+
+    Args:
+        directory: the bundle folder.
+        bundle: what to write; ``meta["visibility"]`` is set from ``bundle.visibility``.
+
+    Returns:
+        ``directory`` as a Path.
+    """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     atomic_write(directory / GAUSSIANS, bundle.scene.save_ply)
@@ -107,6 +138,7 @@ def save(directory: str | Path, bundle: Bundle) -> Path:
 
 
 def _read_json(path: Path) -> Any:
+    """The parsed JSON file; BundleError if it cannot be read or parsed."""
     try:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -122,7 +154,19 @@ def _inside(directory: Path, name: str, key: str) -> Path:
 
 
 def load(directory: str | Path) -> Bundle:
-    """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``); every file must lie inside it."""
+    """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``); every file must lie inside it.
+
+    Args:
+        directory: the bundle folder.
+
+    Returns:
+        The bundle, its scene validated.
+
+    Raises:
+        BundleError: the folder or a required file (gaussians.ply, rig.json, bundle.json) is missing, the version
+            is not ``BUNDLE_VERSION``, a file is unreadable or points outside the folder, or the visibility grid
+            does not fit the scene.
+    """
     directory = Path(directory)
     if not directory.is_dir():
         raise BundleError(f"{directory}: bundle folder not found")

@@ -5,10 +5,13 @@ The file layout is ParkSim's own (``GaussianScene.load_ply`` / ``save_ply``); wh
 similarity (rotation or reflection, uniform scale, translation) applied after it, and with the inverse of the
 transform nerfstudio's dataparser applied before training (``dataparser_transform``); ``transform_scene`` moves
 every Gaussian by such a transform: means, rotations, log-scales and the degree 1-3 SH coefficients together.
+``bundle_from_ply`` does all of it for one file and writes a servable scene bundle (``parksim bundle from-ply``).
 """
 
 from __future__ import annotations
 
+import datetime
+import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -17,12 +20,17 @@ from typing import Any
 import numpy as np
 import torch
 
+from .bundle import Bundle
+from .bundle import save as save_bundle
+from .data import DatasetLayout
+from .fileio import atomic_directory
 from .gaussians import GaussianScene, PLYFormatError
 from .geometry import quaternion_from_rotation
+from .rig import Rig
 from .sh_rotation import rotate_sh
 
 __all__ = ["FRAMES", "T_parksim_ply", "dataparser_transform", "similarity_parts", "transform_scene", "read_ply",
-           "write_ply"]
+           "write_ply", "bundle_from_ply"]
 
 FRAMES: dict[str, np.ndarray] = {
     "parksim": np.eye(3),
@@ -127,3 +135,67 @@ def write_ply(scene: GaussianScene, path: str | Path, T: np.ndarray | None = Non
     """Write ``scene`` as an INRIA 3DGS PLY in a foreign world frame: the inverse of ``read_ply`` with the same
     ``T``."""
     (scene if T is None else transform_scene(scene, np.linalg.inv(T))).save_ply(path)
+
+
+def _read_object(path: Path) -> dict[str, Any]:
+    """The JSON object in the file ``path``; ``ValueError`` (one line, naming it) for anything else."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{path}: unreadable JSON ({' '.join(str(e).split())})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame: str = "parksim",
+                    transform: np.ndarray | None = None, dataparser_transforms: str | Path | None = None,
+                    world_map: str | Path | None = None, overwrite: bool = False) -> Bundle:
+    """A servable scene bundle from a third-party INRIA 3DGS PLY and a ParkSim rig, written to ``output`` whole
+    or not at all. Every input is checked before the PLY is read.
+
+    Args:
+        ply: the 3DGS PLY (graphdeco ``point_cloud.ply``, a gsplat or splatfacto export), SH degree 0-3.
+        rig: ``rig.json``/``.yaml``, or a dataset folder (its ``rig.json``).
+        output: the bundle folder to write.
+        frame: the PLY world's axis convention, a key of ``FRAMES``.
+        transform: 4x4 similarity applied after ``frame`` (None: identity).
+        dataparser_transforms: nerfstudio's ``dataparser_transforms.json`` of the run that trained the PLY,
+            undone first, so ``frame`` describes the world nerfstudio was given.
+        world_map: ``map.json`` (or a dataset folder's) in the same world frame; None: a bundle without a map
+            (render, serve and the viewer work; the gym env and compaction need one).
+        overwrite: replace an existing ``output``.
+
+    Returns:
+        The bundle as written: Gaussians in Morton order, ``meta["ply_import"]`` recording the inputs and
+        ``T_parksim_ply``.
+
+    Raises:
+        ValueError: a transform that is not a similarity, an unknown frame, unreadable JSON.
+        parksim.gaussians.PLYFormatError: a missing property, a non-finite value, no Gaussians.
+        parksim.rig.CalibrationError: no or a bad rig.
+        FileExistsError: ``output`` exists and ``overwrite`` is False.
+    """
+    ply, rig, output = Path(ply), Path(rig), Path(output)
+    if transform is not None:
+        similarity_parts(transform)
+    dataparser = (None if dataparser_transforms is None else
+                  dataparser_transform(_read_object(Path(dataparser_transforms)), str(dataparser_transforms)))
+    T = T_parksim_ply(frame, transform, dataparser)
+    similarity_parts(T)
+    rig_model = Rig.load(DatasetLayout(rig).rig if rig.is_dir() else rig)
+    map_data = None
+    if world_map is not None:
+        world_map = Path(world_map)
+        map_data = _read_object(DatasetLayout(world_map).map if world_map.is_dir() else world_map)
+    scene = read_ply(ply, T)
+    meta = {"source": f"third-party 3DGS PLY {ply.resolve()}", "gaussians": len(scene), "sh_degree": scene.sh_degree,
+            "ply_import": {"ply": str(ply.resolve()), "frame": frame,
+                           "transform": None if transform is None else np.asarray(transform).tolist(),
+                           "dataparser_transform": None if dataparser is None else dataparser.tolist(),
+                           "T_parksim_ply": T.tolist()},
+            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+    bundle = Bundle(scene.spatially_sorted(), rig_model, map_data, meta)
+    with atomic_directory(output, overwrite=overwrite) as tmp:
+        save_bundle(tmp, bundle)
+    return bundle

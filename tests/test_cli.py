@@ -141,7 +141,7 @@ def test_serve_wait_stops_on_sigint_or_sigterm_whatever_it_inherited(send):
     shell does: the Ray server's Ctrl-C test hung whenever the suite was run that way)."""
     code = ("import os, signal, threading, time\n"
             "signal.signal(signal.SIGINT, signal.SIG_IGN)   # as inherited from a background job\n"
-            "from parksim.commands.serve import wait_for_interrupt\n"
+            "from parksim.server.launch import wait_for_interrupt\n"
             "def poke():\n"
             "    time.sleep(0.3)\n"
             f"    {send}\n"

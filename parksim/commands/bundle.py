@@ -71,59 +71,24 @@ def read_transform(tokens: list[str]) -> Any:
     return values.reshape(4, 4)
 
 
-def _read_object(path: Path, option: str) -> dict[str, Any]:
-    """The JSON object in the file ``path`` given to ``option``."""
-    import json
-
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{option} {path}: unreadable JSON ({' '.join(str(e).split())})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{option} {path}: expected a JSON object, got {type(data).__name__}")
-    return data
-
-
 def run(args: argparse.Namespace) -> int:
-    """Check every input, convert the Gaussians, write OUTPUT atomically and print a summary."""
-    import datetime
-
+    """Check OUTPUT, convert the Gaussians into a bundle written atomically (``parksim.ply_3dgs.bundle_from_ply``),
+    print a summary."""
     import numpy as np
 
-    from .. import bundle as bundle_io
-    from ..data import DatasetLayout
-    from ..fileio import atomic_directory
-    from ..ply_3dgs import T_parksim_ply, dataparser_transform, read_ply, similarity_parts
-    from ..rig import Rig
+    from ..ply_3dgs import bundle_from_ply
     from .outputs import check_output_folder
 
     transform = read_transform(args.transform) if args.transform else None
-    if transform is not None:
-        similarity_parts(transform)
-    dataparser = (None if args.dataparser_transforms is None else dataparser_transform(
-        _read_object(args.dataparser_transforms, "--dataparser-transforms"), str(args.dataparser_transforms)))
-    T = T_parksim_ply(args.frame, transform, dataparser)
-    similarity_parts(T)
     check_output_folder(args.output, overwrite=args.overwrite)
-    rig = Rig.load(DatasetLayout(args.rig).rig if args.rig.is_dir() else args.rig)
-    world_map = (_read_object(DatasetLayout(args.map).map if args.map.is_dir() else args.map, "--map")
-                 if args.map else None)
-    scene = read_ply(args.ply, T)
-    meta = {"source": f"third-party 3DGS PLY {args.ply.resolve()}", "gaussians": len(scene),
-            "sh_degree": scene.sh_degree,
-            "ply_import": {"ply": str(args.ply.resolve()), "frame": args.frame,
-                           "transform": None if transform is None else transform.tolist(),
-                           "dataparser_transform": None if dataparser is None else dataparser.tolist(),
-                           "T_parksim_ply": T.tolist()},
-            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
-    bundle = bundle_io.Bundle(scene.spatially_sorted(), rig, world_map, meta)
-    with atomic_directory(args.output) as tmp:
-        bundle_io.save(tmp, bundle)
+    bundle = bundle_from_ply(args.ply, args.rig, args.output, args.frame, transform, args.dataparser_transforms,
+                             args.map, overwrite=args.overwrite)
+    scene = bundle.scene
     lo, hi = np.percentile(scene.means.double().numpy(), [1, 99], axis=0)
     span = ", ".join(f"{a} [{lo[i]:.2f}, {hi[i]:.2f}]" for i, a in enumerate("xyz"))
     print(f"wrote {args.output}: {len(scene)} Gaussians, SH degree {scene.sh_degree}, frame {args.frame}; "
           f"1st-99th percentile of the means (m): {span}")
-    if world_map is None:
+    if bundle.map is None:
         print("no map.json (pass --map): render, serve and the viewer work; the gym env and parksim compact "
               "need a map with a garage and slots")
     return 0

@@ -41,7 +41,7 @@ def _test_pose(data: Path) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..cli import main
+    from .dispatch import main
 
     out = args.output
     data, scene = out / "data", out / "scenes" / "garage"

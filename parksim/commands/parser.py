@@ -33,5 +33,5 @@ class Parser(argparse.ArgumentParser):
         super().__init__(**kwargs)
 
     def error(self, message: str) -> NoReturn:
-        """Raise instead of printing the usage and exiting: ``parksim.cli.main`` prints one line, exit 2."""
+        """Raise instead of printing the usage and exiting: ``dispatch.main`` prints one line, exit 2."""
         raise UsageError(f"{self.prog}: error: {' '.join(message.split())}")

@@ -3,12 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import signal
-import socket
-import time
-from pathlib import Path
-from typing import Any
 
 from .argtypes import integer, number, tcp_port
 
@@ -63,103 +57,24 @@ def _span(text: str) -> tuple[int, int]:
     return low, high
 
 
-def bind(host: str, port: int) -> list[socket.socket]:
-    """Bind ``host:port`` as uvicorn would (every address ``host`` resolves to, SO_REUSEADDR, IPv6 only on IPv6
-    sockets), so a busy port fails before the scenes load; uvicorn then serves on these sockets (no race)."""
-    try:
-        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
-    except socket.gaierror as e:
-        raise ValueError(f"--host {host}: {e.strerror}") from None
-    sockets: list[socket.socket] = []
-    try:
-        for family, kind, proto, _, address in dict.fromkeys(infos):
-            sock = socket.socket(family, kind, proto)
-            sockets.append(sock)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            if family == socket.AF_INET6:
-                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
-            try:
-                sock.bind(address)
-            except OSError as e:
-                raise OSError(e.errno, f"cannot listen there: {e.strerror}", f"{host}:{port}") from None
-    except BaseException:
-        for sock in sockets:
-            sock.close()
-        raise
-    return sockets
-
-
 def run(args: argparse.Namespace) -> int:
-    """Validate the settings and bind policy, bind the port, load the scenes, serve until interrupted."""
-    from parksim.server import Settings, create_app
-    from parksim.server.auth import check_bind
+    """Check the flags, build the settings, and serve until interrupted (``parksim.server.launch``)."""
+    from parksim.server import Settings
+    from parksim.server.launch import serve, serve_ray
 
     settings = Settings.from_env(api_key=args.api_key, workers=args.workers, queue_size=args.queue_size,
                                  max_scale=args.max_scale, max_batch=args.max_batch,
                                  max_reply_bytes=_mib(args.max_reply_mib),
                                  reply_budget_bytes=_mib(args.reply_budget_mib))
-    check_bind(args.host, settings.api_key)
     if args.ray:
-        return _run_ray(args, settings)
+        serve_ray(args.scenes, settings, args.host, args.port, args.replicas or 1, args.autoscale,
+                  args.replica_cpus or 1, args.address)
+        return 0
     given = [flag for flag in ("address", "replicas", "autoscale", "replica_cpus") if getattr(args, flag) is not None]
     if given:
         raise ValueError(f"--{given[0].replace('_', '-')} only applies with --ray")
-    import uvicorn
-
-    sockets = bind(args.host, args.port)
-    try:
-        app = create_app(args.scenes, settings)
-        print(f"serving {', '.join(app.state.registry.ids)} on http://{args.host}:{args.port} "
-              "(viewer at /, docs at /docs)", flush=True)
-        server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
-        with contextlib.suppress(KeyboardInterrupt):   # Ctrl-C is the way to stop it, as with uvicorn.run
-            server.run(sockets=sockets)
-    finally:
-        for sock in sockets:
-            sock.close()
+    serve(args.scenes, settings, args.host, args.port)
     return 0
-
-
-def _run_ray(args: argparse.Namespace, settings: Any) -> int:
-    """Deploy on Ray Serve (a local Ray instance, or the cluster at ``--address``) and serve until Ctrl-C or
-    SIGTERM, then take the deployment (and a Ray this process started) down."""
-    try:
-        from parksim.server import ray_serve
-    except ModuleNotFoundError as e:
-        if e.name != "ray" and not str(e.name).startswith("ray."):
-            raise
-        raise ValueError("--ray needs Ray Serve, which is not installed: install parksim[ray] "
-                         "(pip install 'parksim[ray]')") from None
-    if not Path(args.scenes).is_dir():
-        raise ValueError(f"scenes folder not found: {args.scenes}")
-    for sock in bind(args.host, args.port):   # a busy port fails before Ray starts; Serve's proxy binds it next
-        sock.close()
-    scaling = ray_serve.Scaling(args.replicas or 1, args.autoscale, args.replica_cpus or 1)
-    ray_serve.start(args.scenes, settings, scaling, args.host, args.port, args.address)
-    try:
-        size = (f"{args.autoscale[0]} to {args.autoscale[1]}" if args.autoscale else str(scaling.replicas))
-        print(f"serving on http://{args.host}:{args.port} from {size} Ray Serve replica(s) of {scaling.cpus} CPU(s) "
-              "(viewer at /, docs at /docs)", flush=True)
-        wait_for_interrupt()
-    finally:
-        ray_serve.stop(own_ray=args.address is None)
-    return 0
-
-
-def wait_for_interrupt(poll_s: float = 0.5) -> None:
-    """Block until SIGINT (Ctrl-C) or SIGTERM, which both stop the server as they stop uvicorn's.
-
-    Both are taken here whatever the process inherited (call it after ``ray.init``, which sets its own SIGTERM
-    handler): a background job of a non-interactive shell starts with SIGINT ignored, and Python keeps an ignored
-    SIGINT ignored. The main thread wakes every ``poll_s`` seconds, so a signal the kernel hands to another thread
-    (Ray runs many) is acted on too; a bare lock wait would sleep through it.
-    """
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.default_int_handler)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
-    with contextlib.suppress(KeyboardInterrupt):
-        while True:
-            time.sleep(poll_s)
 
 
 def _mib(value: float | None) -> int | None:

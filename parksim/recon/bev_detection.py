@@ -17,7 +17,7 @@ from parksim.data import DatasetReader
 from parksim.gaussians import GaussianScene
 from parksim.render import bev_ipm
 
-from .detectors import DecodeOptions, Detections, DMPRDetector, SlotLabels
+from .detectors import DecodeOptions, Detections, Detector, SlotLabels
 from .detectors.evaluate import Evaluator, Metrics
 from .detectors.protocols import ParkSimProtocol, Protocol
 from .evaluate import Response, render_view
@@ -75,7 +75,7 @@ def rendered_bevs(scene: GaussianScene, reader: DatasetReader, frames: list[int]
 
 
 @torch.no_grad()
-def score_detector(model: DMPRDetector, bevs: list[TestBEV], decode: DecodeOptions = DecodeOptions(),
+def score_detector(model: Detector, bevs: list[TestBEV], decode: DecodeOptions = DecodeOptions(),
                    protocol: Protocol = ParkSimProtocol()) -> DetectionScore:
     """Detect on every BEV and score against its labels under ``protocol`` (which sets the border margin)."""
     model.eval()

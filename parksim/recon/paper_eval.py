@@ -25,7 +25,7 @@ from parksim.synth.offpath import group_frames, read_offpath
 from .bev_detection import DetectionScore, TestBEV, gt_bevs, rendered_bevs, score_detector
 from .bev_draw import caption, draw_detections, draw_labels, write_grid
 from .config import load_config
-from .detectors import DecodeOptions, Detections, DMPRDetector
+from .detectors import DecodeOptions, Detections, Detector
 from .detectors.protocols import ParkSimProtocol, Protocol
 from .evaluate import evaluate_views, group_means, offpath_split
 from .paper_tables import DETECTOR_TITLES, tables_markdown
@@ -80,7 +80,7 @@ def _annotated(item: TestBEV, det: Detections, title: str) -> np.ndarray:
     return img
 
 
-def _by_group(model: DMPRDetector, bevs: list[TestBEV], groups: dict[str, list[int]], decode: DecodeOptions,
+def _by_group(model: Detector, bevs: list[TestBEV], groups: dict[str, list[int]], decode: DecodeOptions,
               protocol: Protocol) -> dict[str, DetectionScore]:
     """``score_detector`` over the BEVs of each group of frames (detections in the group's frame order)."""
     by_frame = {b.frame: b for b in bevs}
@@ -98,12 +98,12 @@ class _Split:
     gt_scores: dict[str, dict[str, DetectionScore]]
 
     @classmethod
-    def open(cls, reader: DatasetReader, groups: dict[str, list[int]], detectors: dict[str, DMPRDetector],
+    def open(cls, reader: DatasetReader, groups: dict[str, list[int]], detectors: dict[str, Detector],
              decode: DecodeOptions, protocol: Protocol) -> _Split:
         gt = gt_bevs(reader, [f for frames in groups.values() for f in frames])
         return cls(reader, groups, gt, {n: _by_group(m, gt, groups, decode, protocol) for n, m in detectors.items()})
 
-    def score(self, bundle: Bundle, detectors: dict[str, DMPRDetector], decode: DecodeOptions, protocol: Protocol,
+    def score(self, bundle: Bundle, detectors: dict[str, Detector], decode: DecodeOptions, protocol: Protocol,
               backend: str) -> tuple[dict[str, dict[str, Any]], list[TestBEV], dict[str, dict[str, DetectionScore]]]:
         """A reconstruction's image scores per group, its rendered BEVs and each detector's scores per group."""
         reader = self.reader
@@ -118,7 +118,7 @@ class _Split:
         return quality, bevs, {n: _by_group(m, bevs, self.groups, decode, protocol) for n, m in detectors.items()}
 
 
-def _offpath_split(data_dir: Path, detectors: dict[str, DMPRDetector], decode: DecodeOptions,
+def _offpath_split(data_dir: Path, detectors: dict[str, Detector], decode: DecodeOptions,
                    protocol: Protocol) -> tuple[_Split, dict[str, Any]] | None:
     """The dataset's off-path split opened for scoring, and what tables.json records of it; None without one."""
     split = offpath_split(data_dir)
@@ -135,7 +135,7 @@ def _offpath_split(data_dir: Path, detectors: dict[str, DMPRDetector], decode: D
     return opened, record
 
 
-def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, DMPRDetector],
+def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, Detector],
                   out_dir: Path, backend: str = "auto", panel_frames: int = 3,
                   decode: DecodeOptions = DecodeOptions(), protocol: Protocol = ParkSimProtocol(),
                   offpath: bool = True) -> dict[str, Any]:

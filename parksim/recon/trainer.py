@@ -30,7 +30,7 @@ from parksim.render import render
 from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
 from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
-from .detectors import DMPRDetector
+from .detectors import Detector
 from .evaluate import evaluate_views
 from .heap import keep_freed_memory
 from .init import initial_scene
@@ -49,7 +49,14 @@ __all__ = ["Trainer", "scene_extent", "METRICS_FILE"]
 
 
 def scene_extent(reader: DatasetReader) -> float:
-    """3DGS's scene scale: 1.1 x the largest camera-centre distance from their mean (at least 1 m)."""
+    """3DGS's scene scale: 1.1 x the largest camera-centre distance from their mean (at least 1 m).
+
+    Args:
+        reader: the dataset (its camera poses).
+
+    Returns:
+        The extent in metres; the means' learning rate and the densification thresholds scale with it.
+    """
     centres = reader.camera_centres()
     return max(1.0, 1.1 * float((centres - centres.mean(0)).norm(dim=1).max()))
 
@@ -67,13 +74,6 @@ class _Batch:
 class Trainer:
     """Owns the parameters, optimizers, strategy and RNG of one run; ``state()`` / ``resume`` round-trip them.
 
-    Args:
-        reader: the dataset (rig, poses, images, split); training views are every (train frame, camera).
-        config: the validated run config (``parksim.recon.config.load_config``).
-        out_dir: the run folder; checkpoints go to ``out_dir/checkpoints``, metrics to ``out_dir/metrics.jsonl``.
-        log: one-line progress messages (``print`` by default).
-        detector: slot detector guiding the slot-aware phase (needed only when ``config.slot_aware.iterations``).
-
     Call ``initialise()`` (or ``resume(state)`` / ``from_checkpoint``), then ``train()``. Each ``iteration()``
     renders ``config.run.batch_size`` fisheye views of shape (H, W, 3) and returns that step's metrics record.
     ``params.tensors`` holds the Gaussians: ``means`` (N, 3), ``quats`` (N, 4), ``log_scales`` (N, 3),
@@ -81,7 +81,19 @@ class Trainer:
     """
 
     def __init__(self, reader: DatasetReader, config: TrainConfig, out_dir: Path,
-                 log: Callable[[str], None] = print, detector: DMPRDetector | None = None) -> None:
+                 log: Callable[[str], None] = print, detector: Detector | None = None) -> None:
+        """Set up a run; no parameters until ``initialise``, ``resume`` or ``start_from_photometric``.
+
+        Args:
+            reader: the dataset (rig, poses, images, split); training views are every (train frame, camera).
+            config: the validated run config (``parksim.recon.config.load_config``).
+            out_dir: the run folder; checkpoints go to ``out_dir/checkpoints``, metrics to ``out_dir/metrics.jsonl``.
+            log: one-line progress messages (``print`` by default).
+            detector: slot detector guiding the slot-aware phase (needed only when ``config.slot_aware.iterations``).
+
+        Raises:
+            ValueError: the split has no training frames.
+        """
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
         keep_freed_memory()   # every step reuses its large buffers' pages (recon/heap.py)
         self.rig = reader.rig
@@ -105,7 +117,7 @@ class Trainer:
             self.log(f"pose refinement on: a correction per {'image' if self.corrections.per_image else 'frame'}"
                      f"{' and per camera extrinsics' if self.corrections.extrinsics_on else ''}")
 
-    def _slot_step(self, detector: DMPRDetector | None) -> SlotAwareStep | None:
+    def _slot_step(self, detector: Detector | None) -> SlotAwareStep | None:
         """The slot-aware step when phase 2 is on: iterations > 0 and a detector where the variant needs one."""
         sa = self.cfg.slot_aware
         if sa.iterations == 0:
@@ -129,12 +141,17 @@ class Trainer:
 
     # --- set-up ----------------------------------------------------------------------------
     def _lrs(self) -> dict[str, float]:
+        """Initial learning rate per parameter tensor (the means' scaled by the scene extent)."""
         lr = self.cfg.lr
         return {"means": lr.means * self.extent, "quats": lr.quats, "log_scales": lr.scales,
                 "opacity_logits": lr.opacity, "sh0": lr.sh0, "shN": lr.shN}
 
     def initialise(self, scene: GaussianScene | None = None) -> None:
-        """Fresh parameters from the configured initial point cloud, or from ``scene`` (fine-tuning a bundle)."""
+        """Fresh parameters from the configured initial point cloud, or from ``scene`` (fine-tuning a bundle).
+
+        Args:
+            scene: Gaussians to start from (None: ``config.init``'s source).
+        """
         if scene is None:
             scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree,
                                                   self.generator)
@@ -144,7 +161,14 @@ class Trainer:
         self.log(f"initialised {len(scene)} Gaussians from {self.init_note}; scene extent {self.extent:.1f} m")
 
     def resume(self, state: dict[str, Any]) -> None:
-        """Restore a checkpoint's parameters, optimizer moments, strategy, response, RNG and position."""
+        """Restore a checkpoint's parameters, optimizer moments, strategy, response, RNG and position.
+
+        Args:
+            state: a checkpoint as ``state()`` wrote it (``parksim.recon.checkpoint.load_checkpoint``).
+
+        Raises:
+            ValueError: the checkpoint was written with another config, or without the pose corrections this run has.
+        """
         if parse_config(state["config"], "checkpoint config") != self.cfg:
             raise ValueError("the checkpoint was written with a different config; resume with the run's config.yaml")
         self._restore(state)
@@ -154,6 +178,13 @@ class Trainer:
 
         Lets several slot-aware variants share one photometric phase: everything that shapes phase 1
         (init, learning rates, photometric, densify) must equal this run's config, and phase 1 must be complete.
+
+        Args:
+            state: the photometric run's checkpoint.
+            source: the run's name in error messages (its folder).
+
+        Raises:
+            ValueError: phase 1 settings differ from this config's, or the run stopped before the end of phase 1.
         """
         saved = parse_config(state["config"], f"{source} checkpoint config")
         differ = [k for k in ("init", "lr", "photometric", "densify", "pose_opt")
@@ -167,6 +198,7 @@ class Trainer:
         self._restore(state)
 
     def _restore(self, state: dict[str, Any]) -> None:
+        """Load ``state`` into this trainer, whichever way it was checked."""
         self.params = GaussianParams(state["params"], self._lrs())
         self.params.optimizer.load_state_dict(state["optimizer"])
         self.response.load_state_dict(state["response"])
@@ -181,7 +213,12 @@ class Trainer:
             self.corrections.load_state_dict(state["pose_opt"])
 
     def state(self) -> dict[str, Any]:
-        """Everything ``resume`` needs."""
+        """Everything ``resume`` needs.
+
+        Returns:
+            Iteration, timings, parameters (cloned), optimizer, response, strategy and RNG states, the config as
+            JSON values and the pose corrections when refining.
+        """
         assert self.params is not None
         return {"iteration": self.step, "elapsed": self.elapsed, "cpu": self.cpu, "init": self.init_note,
                 "params": {k: v.detach().clone() for k, v in self.params.tensors.items()},
@@ -191,8 +228,14 @@ class Trainer:
                 **({"pose_opt": self.corrections.state_dict()} if self.corrections is not None else {})}
 
     def decode_inputs(self) -> None:
-        """Decode every train and test image now, so a corrupt file fails before the run writes anything rather
-        than at the iteration that first samples it; the train images are kept (evaluation reads its own)."""
+        """Decode every train and test image now, so a corrupt file fails before the run writes anything.
+
+        Otherwise it would fail at the iteration that first samples it. The train images are kept (evaluation
+        reads its own).
+
+        Raises:
+            DatasetError: the first image that is missing, undecodable or of the wrong size.
+        """
         tests = [(f, c) for f in self.reader.split["test"] for c in self.rig.names]
         decoded = self.reader.images(self.views + tests, progress=self.cfg.run.progress)
         self._images = {view: decoded[view] for view in self.views}
@@ -248,6 +291,7 @@ class Trainer:
         return self.corrections.ego_pose(frame).detach()
 
     def _set_lr(self) -> float:
+        """Set and return this step's means learning rate (exponential decay over the schedule)."""
         lr = self.cfg.lr
         means_lr = exp_decay(self.step, self.cfg.schedule_iterations, lr.means * self.extent, lr.means_final_factor)
         assert self.params is not None
@@ -255,7 +299,12 @@ class Trainer:
         return means_lr
 
     def iteration(self) -> dict[str, Any]:
-        """One optimisation step; returns the step's log record."""
+        """One optimisation step; returns the step's log record.
+
+        Returns:
+            ``iteration``, ``loss``, ``rgb_loss``, train ``psnr`` of the first view, ``gaussians``, ``sh_degree``,
+            ``means_lr``, the strategy's refinement counts and, in phase 2, the slot-aware terms.
+        """
         assert self.params is not None
         ph = self.cfg.photometric
         means_lr = self._set_lr()
@@ -290,7 +339,11 @@ class Trainer:
     def evaluate(self) -> dict[str, float | None]:
         """Mean test-view PSNR/SSIM of the current parameters (no slot regions: cheap enough to run often).
 
-        With pose refinement the test poses are first aligned (``pose_opt.test_steps``, Gaussians frozen)."""
+        With pose refinement the test poses are first aligned (``pose_opt.test_steps``, Gaussians frozen).
+
+        Returns:
+            ``{"test_psnr": dB, "test_ssim": ...}``, None where there are no test views.
+        """
         assert self.params is not None
         scene, rig, view_pose = self.params.snapshot(), self.rig, self.reader.view_pose
         if self.corrections is not None:
@@ -307,7 +360,14 @@ class Trainer:
         cut_back(self.out / METRICS_FILE, self.step)
 
     def train(self, stop_after: int | None = None) -> None:
-        """Run to ``total_iterations`` (or stop once ``stop_after`` iterations are done)."""
+        """Run to ``total_iterations`` (or stop once ``stop_after`` iterations are done).
+
+        Appends metrics every ``run.log_every`` steps (and test metrics every ``run.eval_every``) and checkpoints
+        every ``run.checkpoint_every`` steps and at the end.
+
+        Args:
+            stop_after: the iteration to stop at (None: the end).
+        """
         run, total = self.cfg.run, self.total_iterations
         end = total if stop_after is None else min(total, stop_after)
         bar = tqdm(total=total, initial=self.step, desc="reconstruct", unit="it", disable=not run.progress,
@@ -331,7 +391,21 @@ class Trainer:
     @classmethod
     def from_checkpoint(cls, reader: DatasetReader, config: TrainConfig, out_dir: Path,
                         log: Callable[[str], None] = print) -> Trainer:
-        """A trainer continuing the run in ``out_dir`` from its last checkpoint."""
+        """A trainer continuing the run in ``out_dir`` from its last checkpoint.
+
+        Args:
+            reader: the dataset.
+            config: the run's config (must equal the checkpoint's).
+            out_dir: the run folder.
+            log: one-line progress messages.
+
+        Returns:
+            The trainer at the checkpoint's iteration.
+
+        Raises:
+            CheckpointError: the checkpoint is missing or unreadable.
+            ValueError: as ``resume``.
+        """
         state = load_checkpoint(checkpoint_path(out_dir))
         trainer = cls(reader, config, out_dir, log)
         trainer.resume(state)

@@ -125,6 +125,9 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
         A FastAPI app: ``GET/POST /render`` (npz of uint8 (H, W, 3) views, optional float32 (H, W) depth,
         the (h, w, 3) BEV), ``GET /render/{view}.{png,jpg}``, ``/scenes``, ``/healthz``, ``/metrics``, the viewer
         at ``/`` and offline OpenAPI docs at ``/docs``; run it with uvicorn (``parksim serve`` does).
+
+    Raises:
+        BundleError: no scene to serve, a missing scenes folder, or a bundle that does not load.
     """
     settings = settings or Settings()
     registry = _registry(scenes)

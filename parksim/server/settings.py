@@ -13,7 +13,13 @@ API_KEY_ENV = "PARKSIM_API_KEY"
 
 
 class Settings(BaseModel):
-    """Request limits, render pool size and access control of one server."""
+    """Request limits, render pool size and access control of one server.
+
+    Each field's ``description`` says what it limits and in which unit.
+
+    Raises:
+        ValidationError: a value out of its range, or ``reply_budget_bytes < max_reply_bytes``.
+    """
 
     max_scale: float = Field(2.0, gt=0, description="largest resolution factor a request may ask for")
     min_scale: float = Field(0.05, gt=0, description="smallest resolution factor a request may ask for")
@@ -41,8 +47,17 @@ class Settings(BaseModel):
 
     @classmethod
     def from_env(cls, **overrides: object) -> Settings:
-        """Defaults, then the API key from ``PARKSIM_API_KEY``, then explicit ``overrides`` (None ones ignored);
-        ``ValueError`` with one line naming each bad value."""
+        """Defaults, then the API key from ``PARKSIM_API_KEY``, then explicit ``overrides`` (None ones ignored).
+
+        Args:
+            **overrides: field values, e.g. from ``parksim serve`` flags; None means "not given".
+
+        Returns:
+            The settings.
+
+        Raises:
+            ValueError: one line naming each bad value.
+        """
         values: dict[str, object] = {}
         if os.environ.get(API_KEY_ENV):
             values["api_key"] = os.environ[API_KEY_ENV]

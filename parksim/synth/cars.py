@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .layout import Box
+from .garage import Box
 
 __all__ = ["BODY_TYPES", "PALETTE", "CarShape", "random_shape", "car_boxes"]
 

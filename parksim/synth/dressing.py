@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from .layout import AISLE_WIDTH, CROSS_AISLE, Box, Decal, FloorText, Garage, LayoutParams
+from .garage import AISLE_WIDTH, CROSS_AISLE, Box, Decal, FloorText, Garage, LayoutParams
 
 __all__ = ["dress"]
 

@@ -19,8 +19,9 @@ from ..data import DatasetWriter
 from ..data.layout import LAYOUT_VERSION
 from ..fileio import atomic_directory
 from ..ipm import IPM
+from .garage import Box, Garage
 from .labels import frame_labels
-from .layout import Box, Garage, build_garage
+from .layout import build_garage
 from .points import sample_points
 from .presets import ScenePreset
 from .raycast import SUB, TILE, BoxSet, Hits, TiledRays, trace_camera

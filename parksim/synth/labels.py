@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..rig import BEVSpec
-from .layout import Garage
+from .garage import Garage
 from .raycast import BoxSet, trace_world
 
 __all__ = ["frame_labels", "VISIBLE_WEIGHT"]

@@ -10,196 +10,38 @@ with pillars between bays at the back of the row, as in real garages.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Box", "Paint", "MarkingPoint", "Slot", "Light", "Garage", "LayoutParams", "Decal", "FloorText",
-           "build_garage",
-           "AISLE_WIDTH", "CROSS_AISLE"]
+from . import cars
+from .dressing import dress
+from .garage import (
+    AISLE_WIDTH,
+    CROSS_AISLE,
+    PARALLEL_SLOT,
+    Box,
+    Decal,
+    FloorText,
+    Garage,
+    LayoutParams,
+    Light,
+    MarkingPoint,
+    Paint,
+    Slot,
+)
 
-AISLE_WIDTH = 6.0
-"""Driving aisle width between the entrance lines of two facing rows (m)."""
-CROSS_AISLE = 8.0
-"""Free floor at both x ends of the garage, where cars turn between aisles (m)."""
+__all__ = ["build_garage",
+           "Box", "Paint", "MarkingPoint", "Slot", "Light", "Garage", "LayoutParams", "Decal", "FloorText",
+           "AISLE_WIDTH", "CROSS_AISLE"]
+"""``build_garage``; the scene types and dimensions are ``garage``'s, named here too for callers that read them
+from the layout."""
 
 _PERP = (2.5, 5.3)        # slot width along the row, depth (ps2.0-like)
-_PARALLEL = (6.0, 2.5)
 _SLANT_WIDTH = 2.6        # perpendicular distance between slanted separators
 _SLANT_LENGTH = 5.0       # length of a slanted separator line
 _BAY_GAP = 1.2            # floor between bays, where a pillar stands at the back
 _PILLAR = 0.7             # pillar side (m)
 _CAR = (4.5, 1.8, 1.45)   # length, width, height of a parked car
-MIN_LENGTH = 2 * CROSS_AISLE + _PARALLEL[0]
-"""Shortest garage (m): both cross aisles and the widest bay, so every row holds a slot."""
-
-
-@dataclass(frozen=True)
-class Box:
-    """Oriented box standing on the floor: centre (cx, cy), z range, size along/across ``yaw``."""
-
-    cx: float
-    cy: float
-    z0: float
-    z1: float
-    length: float
-    width: float
-    yaw: float
-    material: str
-    color: tuple[float, float, float] = (0.5, 0.5, 0.5)
-
-    def corners_xy(self) -> np.ndarray:
-        """The four floor-plan corners, counter-clockwise, shape (4, 2)."""
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        hl, hw = self.length / 2, self.width / 2
-        local = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
-        return local @ np.array([[c, s], [-s, c]]) + np.array([self.cx, self.cy])
-
-
-@dataclass(frozen=True)
-class Paint:
-    """A painted floor polygon (line segment rectangle or arrow) in world xy, with its colour name."""
-
-    polygon: tuple[tuple[float, float], ...]
-    color: str
-
-
-@dataclass(frozen=True)
-class MarkingPoint:
-    """DMPR-PS marking point in the world: where a separator meets the entrance line.
-
-    ``direction`` (rad, world) points along the separator into the slot; ``shape`` is "T"
-    when the entrance line continues on both sides of the separator, "L" at a row end.
-    """
-
-    x: float
-    y: float
-    direction: float
-    shape: str
-
-
-@dataclass(frozen=True)
-class Slot:
-    """A parking slot: entrance marking points ``p1, p2`` (indices into ``Garage.marks``; the slot lies right of
-    p1 -> p2), kind, ``angle_deg`` from the entrance p1 -> p2 to the separators (0..180), depth, occupancy."""
-
-    p1: int
-    p2: int
-    kind: str
-    angle_deg: float
-    depth: float
-    occupied: bool
-
-
-@dataclass(frozen=True)
-class Light:
-    """Ceiling fixture at (x, y) with relative intensity (0 = broken)."""
-
-    x: float
-    y: float
-    intensity: float
-
-
-@dataclass
-class Garage:
-    """The whole static scene; ``lanes`` are the aisle centre lines' y; ``cars`` the parked cars' outer boxes."""
-
-    length: float
-    y_min: float
-    y_max: float
-    height: float
-    boxes: list[Box] = field(default_factory=list)
-    paint: list[Paint] = field(default_factory=list)
-    marks: list[MarkingPoint] = field(default_factory=list)
-    slots: list[Slot] = field(default_factory=list)
-    lights: list[Light] = field(default_factory=list)
-    lanes: list[float] = field(default_factory=list)
-    cars: list[Box] = field(default_factory=list)
-    line_width: float = 0.15
-    ambient: float = 0.12
-    params: LayoutParams = field(default_factory=lambda: LayoutParams())
-    decals: list[Decal] = field(default_factory=list)
-    floor_text: list[FloorText] = field(default_factory=list)
-
-    def slot_entrance(self, s: Slot) -> tuple[np.ndarray, np.ndarray]:
-        """Midpoint of slot ``s``'s entrance and the unit direction into the slot (world xy)."""
-        a, b = self.marks[s.p1], self.marks[s.p2]
-        return np.array([(a.x + b.x) / 2, (a.y + b.y) / 2]), np.array([math.cos(a.direction), math.sin(a.direction)])
-
-
-@dataclass(frozen=True)
-class Decal:
-    """A sign or painted text on a box face: box index, face (0..3: +x, -x, +y, -y), centre ``u`` (m, to the right
-    as seen facing the face, from the box centre) and ``z``, size, text, ink and panel colours (no panel: None)."""
-
-    box: int
-    face: int
-    u: float
-    z: float
-    width: float
-    height: float
-    text: str
-    ink: tuple[float, float, float]
-    panel: tuple[float, float, float] | None
-
-
-@dataclass(frozen=True)
-class FloorText:
-    """Text painted on the floor: centre (x, y), ``heading`` (rad) its reading direction, letter height (m)."""
-
-    x: float
-    y: float
-    heading: float
-    height: float
-    text: str
-    color: str
-
-
-@dataclass(frozen=True)
-class LayoutParams:
-    """Knobs of one garage: size, slot mix, paint, occupancy, lighting, and the real-garage dressing (varied cars,
-    clutter, signage, worn paint, stains, wet and glossy floor) whose defaults (all off) keep scene1-4 as they were.
-    docs/synth.md gives each knob's range and the property of real garages it imitates."""
-
-    seed: int = 0
-    length: float = 48.0
-    aisles: int = 1
-    height: float = 2.9
-    kinds: tuple[str, ...] = ("perpendicular", "perpendicular", "slanted", "parallel")
-    slant_deg: float = 60.0
-    yellow_fraction: float = 0.3
-    occupancy: float = 0.55
-    light_spacing: float = 6.0
-    light_intensity: float = 1.0
-    broken_lights: float = 0.1
-    ambient: float = 0.12
-    line_width: float = 0.16
-    light_falloff: float = 4.0
-    car_variety: float = 0.0
-    clutter: float = 0.0
-    signage: bool = False
-    paint_fade: float = 0.0
-    paint_scuff: float = 0.0
-    tyre_marks: float = 0.0
-    stains: float = 0.0
-    wet_patches: float = 0.0
-    floor_gloss: float = 0.0
-    grime: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.length) and self.length >= MIN_LENGTH):
-            raise ValueError(f"garage length must be at least {MIN_LENGTH:g} m (two {CROSS_AISLE:g} m cross aisles "
-                             f"and a bay), got {self.length:g}")
-        if self.aisles < 1:
-            raise ValueError(f"a garage needs at least one aisle, got {self.aisles}")
-        shares = {k: getattr(self, k) for k in ("car_variety", "clutter", "paint_fade", "paint_scuff", "tyre_marks",
-                                                 "floor_gloss", "grime")}
-        bad = [f"{k} {v:g}" for k, v in shares.items() if not 0.0 <= v <= 1.0]
-        bad += [f"{k} {v:g}" for k, v in (("stains", self.stains), ("wet_patches", self.wet_patches),
-                                           ("light_falloff", self.light_falloff)) if not 0.0 <= v <= 20.0]
-        if bad:
-            raise ValueError(f"layout parameters out of range: {', '.join(bad)} (shares lie in [0, 1]; stains, "
-                             "wet_patches and light_falloff in [0, 20])")
 
 
 def _segment(p0: np.ndarray, p1: np.ndarray, width: float, color: str) -> Paint:
@@ -247,7 +89,7 @@ class _RowBuilder:
         if kind == "perpendicular":
             step, depth, angle = _PERP[0], _PERP[1], 90.0
         elif kind == "parallel":
-            step, depth, angle = _PARALLEL[0], _PARALLEL[1], 90.0
+            step, depth, angle = PARALLEL_SLOT[0], PARALLEL_SLOT[1], 90.0
         else:
             angle = self.p.slant_deg
             step, depth = _SLANT_WIDTH / math.sin(math.radians(angle)), _SLANT_LENGTH
@@ -291,8 +133,6 @@ class _RowBuilder:
                                         [0.45, 0.46, 0.48], [0.7, 0.68, 0.6], [0.85, 0.85, 0.85]]))
         color = (float(hue[0]), float(hue[1]), float(hue[2]))
         if self.car_rng.random() < self.p.car_variety:
-            from . import cars  # cars builds on Box: imported here, not at the top, to avoid an import cycle
-
             shape = cars.random_shape(self.car_rng)
             if kind == "parallel" or shape.length <= depth - 0.1:  # a long pickup or van only where it fits
                 jitter = self.car_rng.normal(0.0, 0.04, 3)
@@ -311,7 +151,7 @@ class _RowBuilder:
         while True:
             kind = str(self.rng.choice(self.p.kinds))
             n = int(self.rng.integers(2, 4)) if kind != "parallel" else int(self.rng.integers(1, 3))
-            step = {"perpendicular": _PERP[0], "parallel": _PARALLEL[0]}.get(
+            step = {"perpendicular": _PERP[0], "parallel": PARALLEL_SLOT[0]}.get(
                 kind, _SLANT_WIDTH / math.sin(math.radians(self.p.slant_deg)))
             if x + n * step > x_end:
                 n = int((x_end - x) // step)
@@ -358,7 +198,5 @@ def build_garage(params: LayoutParams) -> Garage:
             g.lights.append(Light(float(x), float(y), intensity))
             g.boxes.append(Box(float(x), float(y), H - 0.08, H, 1.25, 0.16, 0.0,
                                "fixture" if on else "fixture_off"))
-    from .dressing import dress  # dressing builds on this module's types: imported here to avoid a cycle
-
     dress(g, params)
     return g

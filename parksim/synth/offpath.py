@@ -25,7 +25,7 @@ from ..data import DatasetReader, DatasetWriter
 from ..data.layout import DatasetError
 from ..fileio import atomic_directory, write_json
 from ..vehicle import Obstacles, VehicleParams, footprint
-from .layout import LayoutParams
+from .garage import LayoutParams
 from .presets import ScenePreset
 from .shading import SensorOptions
 from .trajectory import TrajectoryParams

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .layout import Garage
+from .garage import Garage
 from .raycast import CEILING, FLOOR, BoxSet, Hits
 from .shading import Shader, to_srgb
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .layout import LayoutParams
+from .garage import LayoutParams
 from .shading import SensorOptions
 from .trajectory import TrajectoryParams
 

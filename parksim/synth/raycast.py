@@ -16,7 +16,7 @@ import torch
 from numba import njit, prange
 
 from ..camera import CameraModel
-from .layout import Box
+from .garage import Box
 
 __all__ = ["BoxSet", "TiledRays", "Hits", "trace_camera", "trace_world", "box_id", "TILE", "SUB", "FLOOR", "CEILING",
            "MISS"]

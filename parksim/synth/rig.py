@@ -17,7 +17,7 @@ from ..camera import OpenCVFisheye
 from ..geometry import make_transform
 from ..rig import BEVSpec, Rig, RigCamera
 from ..vehicle import VehicleParams
-from .layout import Box
+from .garage import Box
 
 __all__ = ["avm_rig", "ego_box", "EGO_EXTENT", "CAR_CENTRE_X"]
 

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from .layout import Garage
+from .garage import Garage
 from .raycast import CEILING, FLOOR, BoxSet, Hits
 from .signage import DecalSet, draw_floor_text
 

@@ -1,5 +1,5 @@
 """Sign textures and their lookup: text drawn with OpenCV's Hershey font on a panel (or bare paint), put on box
-faces where ``layout.Decal`` says, and floor text drawn into the floor paint coverage."""
+faces where ``garage.Decal`` says, and floor text drawn into the floor paint coverage."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from .layout import Decal, FloorText
+from .garage import Decal, FloorText
 
 __all__ = ["DecalSet", "text_mask", "draw_floor_text"]
 

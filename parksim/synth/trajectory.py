@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .layout import CROSS_AISLE, Garage
+from .garage import CROSS_AISLE, Garage
 
 __all__ = ["TrajectoryParams", "drive"]
 

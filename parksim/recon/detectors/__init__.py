@@ -6,11 +6,12 @@ downstream evaluation of reconstructed BEVs (``detect`` + ``evaluate``).
 """
 
 from .backbone import PointMaps
+from .base import Detector
 from .decode import DecodeOptions, Detections, MarkingPoint, Slot
 from .dmpr import DMPRDetector
 from .gcn import GCNDetector
 from .labels_ps2 import LabelError, SlotLabels, read_ps2_labels
 from .registry import DETECTORS, load_detector
 
-__all__ = ["DMPRDetector", "GCNDetector", "DETECTORS", "PointMaps", "load_detector", "Detections", "DecodeOptions",
-           "MarkingPoint", "Slot", "SlotLabels", "LabelError", "read_ps2_labels"]
+__all__ = ["Detector", "DMPRDetector", "GCNDetector", "DETECTORS", "PointMaps", "load_detector", "Detections",
+           "DecodeOptions", "MarkingPoint", "Slot", "SlotLabels", "LabelError", "read_ps2_labels"]

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import torch
 
+from .base import Detector
 from .dataset import iter_items
 from .decode import DecodeOptions, Detections
-from .dmpr import DMPRDetector
 from .labels_ps2 import SlotLabels
 from .protocols import MatchOptions, ParkSimProtocol, Protocol, Scored, average_precision, match_points, match_slots
 
@@ -77,7 +77,7 @@ class Evaluator:
                 for name, t in (("points", self.points), ("slots", self.slots))}
 
 
-def evaluate_folder(model: DMPRDetector, folder: str | Path, split: str = "test",
+def evaluate_folder(model: Detector, folder: str | Path, split: str = "test",
                     decode: DecodeOptions = DecodeOptions(), protocol: Protocol = ParkSimProtocol()) -> dict:
     """Detect on every BEV of ``folder``'s ``split``; metrics, images, the protocol and the mean inference time per
     BEV (ms)."""

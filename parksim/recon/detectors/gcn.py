@@ -10,8 +10,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .backbone import PointMaps, _conv
+from .base import Detector
 from .decode import DecodeOptions, MarkingPoint, Slot, decode_points, select_slots
-from .dmpr import DMPRDetector
 
 __all__ = ["GCNDetector", "NODE_FEATURES"]
 
@@ -23,8 +23,8 @@ def _mlp(cin: int, hidden: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(cin, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, cout))
 
 
-class GCNDetector(DMPRDetector):
-    """DMPR-PS' point detector plus GCN-Parking's descriptor, graph and edge classifier over ordered point pairs."""
+class GCNDetector(Detector):
+    """The shared point detector plus GCN-Parking's descriptor, graph and edge classifier over ordered point pairs."""
 
     kind = "gcn"
 

@@ -1,7 +1,7 @@
 """Detector classes by checkpoint ``kind`` and loading a trained one.
 
-The one module that imports every model: ``gcn`` builds on ``dmpr`` and ``dmpr`` knows no subclass, so the
-package's imports form no cycle.
+The one module that imports every model: ``dmpr`` and ``gcn`` build on ``base``, which knows no subclass, so
+the package's imports form no cycle.
 """
 
 from __future__ import annotations
@@ -10,16 +10,17 @@ from pathlib import Path
 
 import torch
 
+from .base import Detector
 from .dmpr import DMPRDetector
 from .gcn import GCNDetector
 
 __all__ = ["DETECTORS", "load_detector"]
 
-DETECTORS: dict[str, type[DMPRDetector]] = {cls.kind: cls for cls in (DMPRDetector, GCNDetector)}
+DETECTORS: dict[str, type[Detector]] = {cls.kind: cls for cls in (DMPRDetector, GCNDetector)}
 """Detector class of each checkpoint ``kind``."""
 
 
-def load_detector(path: str | Path, map_location: str = "cpu") -> DMPRDetector:
+def load_detector(path: str | Path, map_location: str = "cpu") -> Detector:
     """A trained detector in eval mode.
 
     Args:
@@ -41,6 +42,4 @@ def load_detector(path: str | Path, map_location: str = "cpu") -> DMPRDetector:
     ckpt = torch.load(path, map_location=map_location, weights_only=True)
     if not isinstance(ckpt, dict) or ckpt.get("kind") not in DETECTORS:
         raise ValueError(f"{path}: not a detector checkpoint (expected kind {' or '.join(map(repr, DETECTORS))})")
-    model = DETECTORS[ckpt["kind"]](**ckpt["config"])
-    model.load_state_dict(ckpt["state_dict"])
-    return model.eval()
+    return DETECTORS[ckpt["kind"]].from_checkpoint(ckpt)

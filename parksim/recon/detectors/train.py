@@ -14,11 +14,12 @@ from torch import Tensor, nn
 
 from ..losses import sum_terms
 from .backbone import PointMaps
+from .base import Detector
 from .dataset import TrainingSet
-from .dmpr import DMPRDetector
 from .gcn import GCNDetector
+from .registry import DETECTORS
 
-__all__ = ["TrainOptions", "train_detector", "point_loss", "edge_loss", "init_from", "save_checkpoint"]
+__all__ = ["TrainOptions", "train_detector", "point_loss", "edge_loss", "init_from"]
 
 
 @dataclass(frozen=True)
@@ -39,8 +40,8 @@ class TrainOptions:
     device: str = "cpu"          # "cuda" trains on the GPU (data are batched on the CPU and copied over)
 
     def __post_init__(self) -> None:
-        if self.arch not in ("dmpr", "gcn"):
-            raise ValueError(f"arch must be 'dmpr' or 'gcn', got {self.arch!r}")
+        if self.arch not in DETECTORS:
+            raise ValueError(f"arch must be {' or '.join(map(repr, DETECTORS))}, got {self.arch!r}")
         for name in ("steps", "batch_size", "threads", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -69,10 +70,9 @@ def edge_loss(logits: Tensor, edges: Tensor, mask: Tensor) -> Tensor:
     return (loss * valid).sum() / valid.sum().clamp(min=1)
 
 
-def build(opts: TrainOptions) -> DMPRDetector:
+def build(opts: TrainOptions) -> Detector:
     """A fresh model of ``opts.arch``."""
-    cls = GCNDetector if opts.arch == "gcn" else DMPRDetector
-    return cls(width=opts.width, input_size=opts.input_size)
+    return DETECTORS[opts.arch](width=opts.width, input_size=opts.input_size)
 
 
 def init_from(model: nn.Module, path: str | Path) -> int:
@@ -97,14 +97,6 @@ def _init_seconds(init: str | None) -> float:
     folder = Path(init) if Path(init).is_dir() else Path(init).parent
     meta = folder / "train.json"
     return float(json.loads(meta.read_text()).get("total_train_seconds", 0.0)) if meta.is_file() else 0.0
-
-
-def save_checkpoint(model: DMPRDetector, path: Path, extra: dict) -> None:
-    """Write ``model`` (kind, constructor config, weights) and ``extra`` metadata atomically."""
-    tmp = path.with_suffix(".tmp")
-    weights = {k: v.cpu() for k, v in model.state_dict().items()}   # loadable without the training device
-    torch.save({"kind": model.kind, "config": model.config(), "state_dict": weights, **extra}, tmp)
-    tmp.replace(path)
 
 
 def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOptions = TrainOptions(),
@@ -146,7 +138,7 @@ def train_detector(folders: list[str | Path], out: str | Path, opts: TrainOption
         if step % opts.checkpoint_every == 0 or step == opts.steps:
             seconds = time.perf_counter() - start
             meta.update(step=step, train_seconds=seconds, total_train_seconds=before + seconds)
-            save_checkpoint(model.eval(), out / "model.pt", {"meta": meta})
+            model.eval().save(out / "model.pt", {"meta": meta})
             model.train()
     (out / "train.json").write_text(json.dumps(meta, indent=1))
     return out / "model.pt"

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from .variants import Variant
 
 if TYPE_CHECKING:
-    from ..detectors import DMPRDetector
+    from ..detectors import Detector
 
 __all__ = ["SlotAwareConfig", "DetectorRef", "DetectorError"]
 
@@ -40,7 +40,7 @@ class DetectorRef(BaseModel):
                                 f"(train one with `parksim detector train {self.kind} ...`)")
         return path
 
-    def load(self) -> DMPRDetector:
+    def load(self) -> Detector:
         """The detector in eval mode; its checkpoint must hold a detector of ``kind``."""
         from ..detectors import load_detector
 

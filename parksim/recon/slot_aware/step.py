@@ -23,7 +23,7 @@ from parksim.gaussians import GaussianScene
 from parksim.render import bev_ipm, render
 from parksim.rig import Rig
 
-from ..detectors import DMPRDetector, GCNDetector
+from ..detectors import Detector, GCNDetector
 from ..losses import photometric_loss, sum_terms
 from .config import SlotAwareConfig
 from .losses import align_loss, cam_loss, ipm_loss, total_loss
@@ -78,7 +78,7 @@ def _nchw(bev: Tensor) -> Tensor:
 class SlotAwareStep:
     """The slot-aware losses of one frame for a rig, a frozen detector and a ``SlotAwareConfig``."""
 
-    def __init__(self, rig: Rig, detector: DMPRDetector | None, cfg: SlotAwareConfig, ssim_lambda: float = 0.2,
+    def __init__(self, rig: Rig, detector: Detector | None, cfg: SlotAwareConfig, ssim_lambda: float = 0.2,
                  backend: str = "auto", response: Response | None = None, cameras: Sequence[str] | None = None) -> None:
         self.rig, self.cfg, self.ssim_lambda, self.backend, self.response = rig, cfg, ssim_lambda, backend, response
         self.spec = spec_of(cfg.variant)

@@ -1,0 +1,156 @@
+"""Starting the simulator service: in this process under uvicorn (:func:`serve`) or from Ray Serve replicas
+(:func:`serve_ray`), each serving until Ctrl-C or SIGTERM.
+
+What ``parksim serve`` runs, callable from Python with typed arguments. Both refuse a non-loopback interface
+without an API key and take the port before the scenes load, so a busy port fails at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import uvicorn
+
+from .app import create_app
+from .auth import check_bind
+from .settings import Settings
+
+__all__ = ["serve", "serve_ray", "bind", "wait_for_interrupt"]
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def bind(host: str, port: int) -> list[socket.socket]:
+    """Bind ``host:port`` as uvicorn would (every address ``host`` resolves to, SO_REUSEADDR, IPv6 only on IPv6
+    sockets), so a busy port fails before the scenes load; uvicorn then serves on these sockets (no race).
+
+    Args:
+        host: interface name or address.
+        port: TCP port.
+
+    Returns:
+        The bound (not yet listening) sockets; the caller closes them.
+
+    Raises:
+        ValueError: ``host`` does not resolve.
+        OSError: the port is taken or not allowed (the message names ``host:port``).
+    """
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise ValueError(f"--host {host}: {e.strerror}") from None
+    sockets: list[socket.socket] = []
+    try:
+        for family, kind, proto, _, address in dict.fromkeys(infos):
+            sock = socket.socket(family, kind, proto)
+            sockets.append(sock)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                sock.bind(address)
+            except OSError as e:
+                raise OSError(e.errno, f"cannot listen there: {e.strerror}", f"{host}:{port}") from None
+    except BaseException:
+        for sock in sockets:
+            sock.close()
+        raise
+    return sockets
+
+
+def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port: int = 8000,
+          log: Callable[[str], None] = _say) -> None:
+    """Serve every scene bundle under ``scenes`` from this process until Ctrl-C.
+
+    Args:
+        scenes: a folder of bundle folders, or one bundle folder.
+        settings: the server's limits and API key.
+        host: interface to listen on; other than loopback it needs ``settings.api_key``.
+        port: TCP port.
+        log: receives the one line saying what is served where, once the scenes are loaded.
+
+    Raises:
+        ValueError: a non-loopback ``host`` without an API key, or an unresolvable ``host``.
+        OSError: the port is taken (before any scene loads).
+        parksim.bundle.BundleError: no loadable scene under ``scenes``.
+    """
+    check_bind(host, settings.api_key)
+    sockets = bind(host, port)
+    try:
+        app = create_app(scenes, settings)
+        log(f"serving {', '.join(app.state.registry.ids)} on http://{host}:{port} (viewer at /, docs at /docs)")
+        server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+        with contextlib.suppress(KeyboardInterrupt):   # Ctrl-C is the way to stop it, as with uvicorn.run
+            server.run(sockets=sockets)
+    finally:
+        for sock in sockets:
+            sock.close()
+
+
+def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port: int = 8000,
+              replicas: int = 1, autoscale: tuple[int, int] | None = None, replica_cpus: int = 1,
+              address: str | None = None, log: Callable[[str], None] = _say) -> None:
+    """Serve the scenes from Ray Serve replicas until Ctrl-C or SIGTERM, then take the deployment (and a Ray this
+    call started) down. Each replica loads the scenes itself, so ``scenes`` must be readable at the same path on
+    every node; ``settings``' limits hold per replica.
+
+    Args:
+        scenes: a folder of bundle folders, or one bundle folder.
+        settings: the server's limits and API key.
+        host: interface Serve's HTTP proxy listens on; other than loopback it needs ``settings.api_key``.
+        port: TCP port of the proxy.
+        replicas: fixed number of replicas (ignored with ``autoscale``).
+        autoscale: (min, max) replicas, scaled on each replica's ongoing requests.
+        replica_cpus: CPUs each replica reserves and renders with.
+        address: ``HEAD:PORT`` of a Ray cluster to join; None starts a local Ray on this machine's cores.
+        log: receives the one line saying where it serves, once every replica has loaded the scenes.
+
+    Raises:
+        ValueError: Ray Serve is not installed, the scenes folder is missing, the cluster cannot be reached or a
+            replica fails to start (one line each), or a non-loopback ``host`` without an API key.
+        OSError: the port is taken (before Ray starts).
+    """
+    check_bind(host, settings.api_key)
+    try:
+        from . import ray_serve  # optional dependency (parksim[ray]): imported only when asked for
+    except ModuleNotFoundError as e:
+        if e.name != "ray" and not str(e.name).startswith("ray."):
+            raise
+        raise ValueError("--ray needs Ray Serve, which is not installed: install parksim[ray] "
+                         "(pip install 'parksim[ray]')") from None
+    if not Path(scenes).is_dir():
+        raise ValueError(f"scenes folder not found: {scenes}")
+    for sock in bind(host, port):   # a busy port fails before Ray starts; Serve's proxy binds it next
+        sock.close()
+    scaling = ray_serve.Scaling(replicas, autoscale, replica_cpus)
+    ray_serve.start(scenes, settings, scaling, host, port, address)
+    try:
+        size = f"{autoscale[0]} to {autoscale[1]}" if autoscale else str(replicas)
+        log(f"serving on http://{host}:{port} from {size} Ray Serve replica(s) of {replica_cpus} CPU(s) "
+            "(viewer at /, docs at /docs)")
+        wait_for_interrupt()
+    finally:
+        ray_serve.stop(own_ray=address is None)
+
+
+def wait_for_interrupt(poll_s: float = 0.5) -> None:
+    """Block until SIGINT (Ctrl-C) or SIGTERM, which both stop the server as they stop uvicorn's.
+
+    Both are taken here whatever the process inherited (call it after ``ray.init``, which sets its own SIGTERM
+    handler): a background job of a non-interactive shell starts with SIGINT ignored, and Python keeps an ignored
+    SIGINT ignored. The main thread wakes every ``poll_s`` seconds, so a signal the kernel hands to another thread
+    (Ray runs many) is acted on too; a bare lock wait would sleep through it.
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.default_int_handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    with contextlib.suppress(KeyboardInterrupt):
+        while True:
+            time.sleep(poll_s)
