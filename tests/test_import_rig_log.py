@@ -2,7 +2,8 @@
 calibrations, CSV/JSON poses, image folders and mp4v videos) and imported back by the real CLI; unsynchronised
 cameras against the synth trajectory; dropped frames; bad input.
 
-The writers here (``write_rig_log`` and the per-format helpers) also make the logs of benchmarks/bench_import.py.
+The OpenCV-YAML, pose and image writers are the import benchmark suite's (``parksim.bench.rig_logs``); the
+WoodScape and OCam writers are here.
 """
 
 from __future__ import annotations
@@ -17,17 +18,13 @@ import numpy as np
 import pytest
 import torch
 
+from parksim.bench.rig_logs import extrinsics_file, image_folders, poses_csv, stamp_name, videos, write_rig_log
 from parksim.cli import main
 from parksim.data import DatasetReader
 from parksim.geometry import quaternion_from_rotation
 from parksim.importers.recording import REPORT_FILE
 from parksim.importers.rig_log import PoseLog
-from parksim.rig import Rig
 
-FOURCC = "mp4v"
-"""The codec this OpenCV build's FFmpeg writer encodes into .mp4 (avc1/H264/HEVC are refused: no encoder);
-VIDEOWRITER_PROP_QUALITY cannot be set for it (set() returns False), so frames are at the backend's default
-quality: ~35 dB PSNR against the PNGs on the tiny scene."""
 DECODED_FOURCC = "FMP4"
 """What cv2.VideoCapture reports (CAP_PROP_FOURCC) for an mp4v stream: FFmpeg's tag for MPEG-4 Part 2."""
 VIDEO_PSNR_DB = 30.0
@@ -49,40 +46,11 @@ UNSYNC_M, UNSYNC_RAD = 0.005, math.radians(0.1)
 a finite difference along a 5 cm polyline, so its second differences at 80 Hz (up to 15 m/s^2 at the front
 camera) bound nothing useful."""
 THETA_MAX = math.radians(95.0)
-QUATERNION_FORM = ("rear", "right")
-"""Cameras whose extrinsics are written as x, y, z + quaternion (the others as a 4x4 T_vehicle_camera)."""
 
 
 # --- writers: a dataset as a rig log ---------------------------------------------------------------------------------
-def stamp_name(t: float) -> str:
-    """An image file name holding ``t`` as 19-digit integer nanoseconds (read back by the digit-count rule)."""
-    return f"{round(t * 1e9):019d}.png"
-
-
-def opencv_yaml(model, path: Path) -> None:
-    """An OpenCV fisheye calibration file (camera_matrix, dist_coeffs, resolution), as cv2.FileStorage writes it."""
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    fs.write("camera_matrix", model.K.numpy())
-    fs.write("dist_coeffs", model.k.numpy().reshape(4, 1))
-    fs.write("resolution", np.array([[model.width], [model.height]], np.int32))
-    fs.release()
-
-
 def _quaternion(R: torch.Tensor) -> list[float]:
     return [float(v) for v in quaternion_from_rotation(R)]
-
-
-def extrinsics_file(rig: Rig, path: Path) -> None:
-    """T_vehicle_camera of every camera (4x4, or x, y, z + quaternion for ``QUATERNION_FORM``) and the BEV spec."""
-    cameras = {}
-    for name, cam in rig.cameras.items():
-        T = cam.T_vehicle_camera
-        if name in QUATERNION_FORM:
-            qw, qx, qy, qz = _quaternion(T[:3, :3])
-            cameras[name] = dict(zip(("x", "y", "z"), T[:3, 3].tolist()), qw=qw, qx=qx, qy=qy, qz=qz)
-        else:
-            cameras[name] = {"T_vehicle_camera": T.tolist()}
-    path.write_text(json.dumps({"cameras": cameras, "bev": rig.bev.to_dict()}))
 
 
 def _kb_rho(model, theta: np.ndarray) -> np.ndarray:
@@ -139,61 +107,6 @@ def ocam_txt(model, path: Path) -> None:
         f"{float(model.cy)!r} {float(model.cx)!r}\n\n#affine parameters \"c\", \"d\", \"e\"\n\n"
         f"{float(model.fy / model.fx)!r} 0 0\n\n#image size: \"height\" and \"width\"\n\n"
         f"{model.height} {model.width}\n")
-
-
-def poses_csv(path: Path, times: np.ndarray, poses: np.ndarray, spoil: dict[int, dict[str, float]] | None = None
-              ) -> None:
-    """timestamp, x, y, z, qw, qx, qy, qz rows (repr: every bit kept); ``spoil`` overrides values of some rows."""
-    lines = ["timestamp,x,y,z,qw,qx,qy,qz"]
-    for i, (t, T) in enumerate(zip(times, poses)):
-        row = dict(zip(("timestamp", "x", "y", "z"), [float(t), *T[:3, 3].tolist()]),
-                   **dict(zip(("qw", "qx", "qy", "qz"), _quaternion(torch.from_numpy(T[:3, :3])))))
-        row.update((spoil or {}).get(i, {}))
-        lines.append(",".join(repr(float(v)) for v in row.values()))
-    path.write_text("\n".join(lines) + "\n")
-
-
-def image_folders(data: Path, root: Path, offsets: dict[str, float] | None = None) -> None:
-    """Every camera's PNGs copied to ``root/<camera>/<time in ns>.png``; ``offsets`` shift a camera's times."""
-    reader = DatasetReader(data)
-    for c in reader.rig.names:
-        (root / c).mkdir(parents=True)
-        for f, t in zip(reader.frames, reader.timestamps):
-            (root / c / stamp_name(t + (offsets or {}).get(c, 0.0))).write_bytes(reader.layout.image(c, f).read_bytes())
-
-
-def videos(data: Path, root: Path, fps: float) -> dict[str, Path]:
-    """One ``FOURCC`` .mp4 per camera of the dataset's frames at ``fps``."""
-    reader = DatasetReader(data)
-    root.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    for c in reader.rig.names:
-        m = reader.rig.cameras[c].model
-        paths[c] = root / f"{c}.mp4"
-        writer = cv2.VideoWriter(str(paths[c]), cv2.VideoWriter_fourcc(*FOURCC), fps, (m.width, m.height))
-        assert writer.isOpened(), f"this OpenCV build cannot write {FOURCC}"
-        for f in reader.frames:
-            writer.write(cv2.imread(str(reader.layout.image(c, f)), cv2.IMREAD_COLOR))
-        writer.release()
-    return paths
-
-
-def write_rig_log(data: Path, out: Path, video: bool) -> list[str]:
-    """The dataset as a rig log (OpenCV YAML + extrinsics, poses.csv at the frame times, PNG folders or mp4v
-    videos at the dataset's rate) and the ``parksim import rig-log`` arguments that read it (without -o)."""
-    reader = DatasetReader(data)
-    (out / "calib").mkdir(parents=True)
-    for c, cam in reader.rig.cameras.items():
-        opencv_yaml(cam.model, out / "calib" / f"{c}.yaml")
-    extrinsics_file(reader.rig, out / "calib" / "extrinsics.json")
-    poses_csv(out / "poses.csv", np.array(reader.timestamps), reader.poses.numpy())
-    args = ["import", "rig-log", "--calib", str(out / "calib"), "--poses", str(out / "poses.csv")]
-    if video:
-        rate = 1.0 / float(np.median(np.diff(reader.timestamps)))
-        paths = videos(data, out / "video", rate)
-        return args + ["--video", *(f"{c}={p}" for c, p in paths.items())]
-    image_folders(data, out / "images")
-    return args + ["--images", str(out / "images")]
 
 
 # --- fixtures --------------------------------------------------------------------------------------------------------

@@ -1,9 +1,18 @@
-"""``parksim bench``: seeded benchmarks that write JSON, a Markdown table and a PNG plot each.
+"""``parksim bench``: seeded benchmark suites, each run written as one JSON record, and the dashboard built from them.
 
-One module per subcommand: ``render`` (latency vs error over the user's knobs), ``train`` (test PSNR vs
-wall-clock), ``scaling`` (latency vs Gaussians and pixels, fitted exponents), ``stress`` (the hypothesis
-stress suite at many examples), ``soak`` (long training and server runs); ``common`` holds the timing,
-metadata and writing helpers they share. Reached only from the CLI, so it may import ``recon``/``server``.
+- ``record``: a run as data (``Figure``, ``Machine``, ``Record``), written once, read by the report.
+- ``suite``: the ``Suite`` contract (options dataclass, ``run(options, context) -> Outcome``), the registry
+  ``SUITES`` and ``run_suite``, which stamps a run (command, commit, date, machine, load, versions) into a record.
+- ``report``: ``benchmarks/RESULTS.md`` generated from the records alone.
+- ``suites/``: one module per suite (``scaling``, ``knobs``, ``train``, ``stress``, ``soak-train`` and
+  ``soak-server``, ...), each importing torch and the renderer only inside ``run``.
+- Inputs the suites share: ``datasets`` (synthetic garages made once under the work folder), ``scenes``
+  (garage-like Gaussian scenes from a dataset's points, SH caps), ``bundles`` and ``serving`` (trained and served
+  bundles); ``procs`` (processes under measurement: RSS and CPU from /proc, a loopback ``parksim serve``).
+- ``common``: timing medians (wall and process CPU, alternating order), thread control, growth exponents,
+  progress bars and plots.
+
+Reached from the CLI (``parksim bench``) and the tests; library code elsewhere never imports it.
 """
 
 __all__: list[str] = []

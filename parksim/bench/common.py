@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["Timing", "set_threads", "time_medians", "fit_exponent", "md_table", "progress", "pyplot", "save_figure"]
+__all__ = ["Timing", "set_threads", "time_medians", "fit_exponent", "progress", "pyplot", "save_figure"]
 
 
 @dataclass(frozen=True)
@@ -56,15 +56,6 @@ def time_medians(fns: Sequence[Callable[[], Any]], repeats: int, warmup: int = 1
 def fit_exponent(xs: Sequence[float], ys: Sequence[float]) -> float:
     """Slope of log y against log x (least squares): y ~ x^slope."""
     return float(np.polyfit(np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float)), 1)[0])
-
-
-def md_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
-    """A Markdown table; floats get 4 significant digits."""
-    def cell(v: Any) -> str:
-        return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-    return ["| " + " | ".join(headers) + " |", "|" + " --- |" * len(headers),
-            *("| " + " | ".join(cell(v) for v in row) + " |" for row in rows)]
 
 
 def progress(total: int, desc: str, quiet: bool) -> Any:

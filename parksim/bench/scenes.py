@@ -1,5 +1,6 @@
 """Inputs of the render benchmarks: garage-like Gaussian scenes built from a dataset's surface points (random
-scenes have other statistics than trained ones), trained bundles, and an SH-degree cap of a scene.
+scenes have other statistics than trained ones), trained bundles, an SH-degree cap of a scene, and untrained
+bundles sampled on a synth garage's surfaces (for the simulator and planner benchmarks).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import torch
 
 from ..gaussians import SH_C0, GaussianScene
 
-__all__ = ["garage_scene", "cap_sh_degree", "read_points", "mean_spacing"]
+__all__ = ["garage_scene", "cap_sh_degree", "read_points", "mean_spacing", "surface_bundle"]
 
 
 def read_points(dataset: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -73,3 +74,55 @@ def cap_sh_degree(scene: GaussianScene, degree: int) -> GaussianScene:
     degree = min(degree, scene.sh_degree)
     return GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits,
                          scene.sh[:, :(degree + 1) ** 2].contiguous(), sh_degree=degree)
+
+
+def surface_bundle(out: Path, preset: str, n: int, seed: int = 0, size: tuple[int, int] | None = None,
+                   bev_px: int | None = None) -> Path:
+    """A scene bundle made without training: ``n`` flat Gaussians sampled on the surfaces of a synth preset's garage
+    (floor, ceiling, pillars, walls, parked cars), coloured by its shader (slot lines included), with the preset's
+    rig and world map. The simulator benchmarks drive planners and servers on it (the tests' ``make_bundle``).
+
+    Args:
+        out: bundle folder to write (gaussians.ply, rig.json, map.json, bundle.json).
+        preset: a synth preset (``tiny``, ``scene1`` ...).
+        n: number of Gaussians.
+        seed: seed of the surface samples.
+        size: camera ``(width, height)``, default the preset's.
+        bev_px: BEV side in pixels, default the preset's.
+
+    Returns:
+        ``out``. The Gaussians are stored spatially sorted, as ``parksim reconstruct`` stores them.
+    """
+    from .. import bundle as bundle_io
+    from ..geometry import quaternion_from_rotation
+    from ..synth.generate import scene_map
+    from ..synth.layout import build_garage
+    from ..synth.points import sample_points
+    from ..synth.presets import get_preset
+    from ..synth.raycast import BoxSet
+    from ..synth.rig import avm_rig, ego_box
+    from ..synth.shading import Shader
+
+    p = get_preset(preset)
+    garage = build_garage(p.layout)
+    boxes = BoxSet.from_boxes([*garage.boxes, ego_box(np.eye(4))])
+    materials = [b.material for b in garage.boxes] + ["ego"]
+    colors = np.array([b.color for b in garage.boxes] + [(0.16, 0.17, 0.19)])
+    shader = Shader(garage, boxes, materials, colors, p.layout.seed)
+    span = np.stack([np.eye(4), np.eye(4)])
+    span[1, 0, 3] = garage.length
+    xyz, rgb, normals = sample_points(garage, shader, boxes, materials, span, n, seed, noise=0.005)
+    nrm = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    helper = np.where(np.abs(nrm[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    t1 = np.cross(helper, nrm)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    frames = np.stack([t1, np.cross(nrm, t1), nrm], axis=2)   # third axis: the normal, the flat one
+    sigma = 0.7 * math.sqrt(garage.length * (garage.y_max - garage.y_min) * 2.6 / n)
+    log_scales = torch.tensor([math.log(sigma), math.log(sigma), math.log(0.01)], dtype=torch.float64).expand(n, 3)
+    sh = ((torch.from_numpy(rgb).double() / 255.0 - 0.5) / SH_C0)[:, None, :]
+    scene = GaussianScene(torch.from_numpy(xyz), quaternion_from_rotation(torch.from_numpy(frames)),
+                          log_scales.clone(), torch.full((n,), 2.5, dtype=torch.float64), sh, 0).to(torch.float32)
+    width, height = size or (p.width, p.height)
+    meta = {"source": f"synthetic garage {preset!r} (surface samples, not trained)", "gaussians": n}
+    return bundle_io.save(out, bundle_io.Bundle(scene.spatially_sorted(), avm_rig(width, height, bev_px or p.bev_px),
+                                                scene_map(garage), meta))

@@ -11,7 +11,6 @@ preset; ``parksim.commands.options`` builds the command line from it) and ``run(
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -19,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+from ..checked_options import check_options
 from .record import Figure, Record, current_commit, this_machine, utc_now, write_record
 
 __all__ = ["Suite", "Context", "Outcome", "SUITES", "suite", "run_suite"]
@@ -79,6 +79,30 @@ class Suite(ABC):
 
 SUITES: dict[str, str] = {
     "scaling": "scaling:ScalingSuite",
+    "render": "render:RenderSuite",
+    "projection": "projection:ProjectionSuite",
+    "rasterize": "rasterize:RasterizeSuite",
+    "ipm": "ipm:IPMSuite",
+    "ut-accuracy": "ut_accuracy:UTAccuracySuite",
+    "gpu": "gpu:GPUSuite",
+    "knobs": "knobs:KnobsSuite",
+    "train": "train:TrainSuite",
+    "stress": "stress:StressSuite",
+    "soak-train": "soak:SoakTrainSuite",
+    "soak-server": "soak:SoakServerSuite",
+    "train-step": "train_step:TrainStepSuite",
+    "compact": "compact:CompactSuite",
+    "import": "imports:ImportSuite",
+    "pose-refine": "pose_refine:PoseRefineSuite",
+    "synth": "synth:SynthSuite",
+    "detectors": "detectors:DetectorsSuite",
+    "planner": "planner:PlannerSuite",
+    "slot-aware": "slot_aware:SlotAwareSuite",
+    "server": "server:ServerSuite",
+    "server-memory": "server_memory:ServerMemorySuite",
+    "ray": "ray:RaySuite",
+    "batch": "batch:BatchSuite",
+    "env": "env:EnvSuite",
 }
 """Suite name -> ``module:Class`` under ``parksim.bench.suites``."""
 
@@ -133,10 +157,11 @@ def run_suite(name: str, options: Any, context: Context, results: Path, command:
     chosen = suite(name)
     if not isinstance(options, chosen.Options):
         raise TypeError(f"suite {name}: options must be {chosen.Options.__name__}, got {type(options).__name__}")
+    check_options(options)
     date, load_start = utc_now(), [round(x, 2) for x in os.getloadavg()]
     outcome = chosen.run(options, context)
     record = Record(suite=name, command=command, commit=current_commit(), date=date, machine=this_machine(),
-                    figures=outcome.figures, options={**dataclasses.asdict(options), "seed": context.seed,
+                    figures=outcome.figures, options={**vars(options), "seed": context.seed,
                                                       "quick": context.quick},
                     load={"start": load_start, "end": [round(x, 2) for x in os.getloadavg()]},
                     versions={**_versions(), **{k: str(v) for k, v in _threads().items()}}, data=outcome.data)

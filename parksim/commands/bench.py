@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import shlex
 from pathlib import Path
+from typing import Any
 
 from .options import add_options, options_from_args
 
@@ -62,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{args.results}: no results folder (run from the repository root, or --results)")
         print(f"wrote {write_dashboard(args.results, args.output)}")
         return 0
-    options = options_from_args(suite(args.bench).Options, args, quick=args.quick)
+    options: Any = options_from_args(suite(args.bench).Options, args, quick=args.quick)
     context = Context(work=args.work, seed=args.seed, quick=args.quick, quiet=args.quiet)
     results = args.results or (args.work / "results" if args.quick else RESULTS)
     path = run_suite(args.bench, options, context, results, shlex.join(["parksim", *args.argv]))

@@ -31,6 +31,9 @@ from .argtypes import integer, number
 
 __all__ = ["add_options", "options_from_args"]
 
+_UNSET = object()
+"""The namespace value of an optional positional argument left out (options take ``argparse.SUPPRESS``)."""
+
 T = TypeVar("T")
 
 
@@ -137,9 +140,9 @@ def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
             kwargs["type"] = _scalar_parser(tp, meta)
         if meta.get("positional"):
             kwargs.pop("default")
-            if default is not dataclasses.MISSING:
+            if default is not dataclasses.MISSING:   # argparse would pass a SUPPRESS default through ``type``
                 kwargs["nargs"] = "?"
-                kwargs["default"] = argparse.SUPPRESS
+                kwargs["default"] = _UNSET
             parser.add_argument(f.name, **kwargs)
             continue
         names = [f"--{f.name.replace('_', '-')}"]
@@ -164,7 +167,7 @@ def options_from_args(cls: type[T], args: argparse.Namespace, quick: bool = Fals
     values: dict[str, Any] = {}
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]  # cls is a dataclass by contract
-        if hasattr(args, f.name):
+        if getattr(args, f.name, _UNSET) is not _UNSET:
             value = getattr(args, f.name)
             origin = typing.get_origin(_unwrap_optional(hints[f.name])[0])
             if origin is dict and isinstance(value, list):

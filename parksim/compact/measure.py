@@ -51,7 +51,8 @@ def tile_pairs(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tenso
     top = (tile // bins.tiles_x) * TILE
     first, last = bins.packed[g, 10].astype(np.int64), bins.packed[g, 11].astype(np.int64)
     rows = np.clip(np.minimum(top + TILE - 1, last) - np.maximum(top, first) + 1, 0, None)
-    return torch.from_numpy(np.bincount(g, weights=rows * TILE, minlength=m))
+    pairs = np.bincount(g, weights=rows * TILE, minlength=m)
+    return torch.from_numpy(pairs.astype(np.float64, copy=False))   # numpy gives int64 zeros when g is empty
 
 
 @torch.no_grad()

@@ -4,7 +4,7 @@ A training step allocates and frees the same large buffers every iteration (grad
 the SH gradient: tens of MB each). glibc serves blocks over its mmap threshold (at most 32 MB) with a fresh
 ``mmap`` and unmaps them on free, so every step pays a page fault per page it touches again. On a
 200k-Gaussian 640x480 step: 18345 minor faults a step before, 0 after, and 1.03-1.16x faster
-(``benchmarks/RESULTS_render.md``); the render path, which keeps its own scratch buffers, gained nothing.
+(``docs/benchmarks.md#render``); the render path, which keeps its own scratch buffers, gained nothing.
 The cost: the process keeps its peak heap until it exits.
 """
 

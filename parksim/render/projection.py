@@ -18,7 +18,7 @@ Choices at the edges, all deterministic and NaN-free:
   ``[0.3, (max_radius / 3)^2]``: UT with negative centre weights can be indefinite, and
   Gaussians around or right next to the camera would cover the whole image.
 - Adaptive sigma points: the few Gaussians that are large for their distance and near the
-  lens edge (where the 7-point UT is worst, see ``benchmarks/RESULTS_ut.md``) are blended
+  lens edge (where the 7-point UT is worst, see ``docs/benchmarks.md#ut-accuracy``) are blended
   continuously into a fifth-degree cubature set (2n^2+1 = 19 points).
 """
 
@@ -56,7 +56,7 @@ class UTParams:
     """Unscented-transform parameters (``lambda = alpha^2 (n + kappa) - n``) and the adaptive rule.
 
     Defaults: 3DGUT's (alpha=1, beta=2, kappa=0), the most accurate 7-point set in
-    ``benchmarks/RESULTS_ut.md``. Gaussians with ``sigma_max / distance > adaptive_min_rel_size``
+    ``docs/benchmarks.md#ut-accuracy``. Gaussians with ``sigma_max / distance > adaptive_min_rel_size``
     whose centre is more than ``adaptive_min_theta_deg`` off the axis are blended into the
     fifth-degree set (fully at twice the size and 10 deg further out); ``adaptive=False`` turns it off.
 

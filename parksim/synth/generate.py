@@ -166,7 +166,7 @@ class _FrameWriter:
 _FRAMES_PER_WORKER = 8
 """The default pool has at most one worker per 8 frames' worth of 640x480 views: a worker's start-up (imports, its
 own renderer's textures) costs several such frames of CPU, and in serial mode the ray caster already uses every
-core (benchmarks/RESULTS_synth.md: 8 frames of scene1 ran 0.8x as fast on 2 workers as serially)."""
+core (docs/benchmarks.md#synth: 8 frames of scene1 ran 0.8x as fast on 2 workers as serially)."""
 
 _WORKER: _FrameWriter | None = None
 """The pool worker's own renderer and writer, built once by ``_init_worker``."""
