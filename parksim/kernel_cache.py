@@ -19,7 +19,7 @@ import numba
 __all__ = ["configure", "source_hash", "KERNEL_SOURCES", "KEEP_OTHERS"]
 
 _ROOT = Path(__file__).resolve().parent
-KERNEL_SOURCES = ("render", "synth", "gaussians.py", "_ipm_kernels.py", "recon/_ssim_kernels.py")
+KERNEL_SOURCES = ("render", "synth", "gaussians.py", "_ipm_kernels.py", "recon/_ssim_kernels.py", "bench/pairs.py")
 """What the kernels and their inlined helpers are built from (packages or files under ``parksim/``)."""
 _PREFIX = "numba-"
 KEEP_OTHERS = 2

@@ -23,7 +23,7 @@ import pytest
 import parksim
 
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("", "fileio", "checked_options", "imageio", "geometry", "kernel_cache", "omp_env", "frames", "vehicle",
+    ("base", ("", "fileio", "checked_options", "plugins", "imageio", "geometry", "kernel_cache", "omp_env", "frames", "vehicle",
               "visibility", "assets")),
     ("model", ("camera", "rig", "gaussians", "data", "calib", "bundle")),
     ("render", ("render", "ipm", "_ipm_kernels", "sh_rotation", "ply_3dgs")),

@@ -11,14 +11,14 @@ preset; ``parksim.commands.options`` builds the command line from it) and ``run(
 
 from __future__ import annotations
 
-import importlib
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 from ..checked_options import check_options
+from ..plugins import Plugin, instantiate
 from .record import Figure, Record, current_commit, this_machine, utc_now, write_record
 
 __all__ = ["Suite", "Context", "Outcome", "SUITES", "suite", "run_suite"]
@@ -56,13 +56,8 @@ class Outcome:
     plot: Callable[[Path], None] | None = None
 
 
-class Suite(ABC):
+class Suite(Plugin):
     """A named benchmark (see the module docstring)."""
-
-    name: ClassVar[str]
-    help: ClassVar[str]
-    description: ClassVar[str]
-    Options: ClassVar[type]
 
     @abstractmethod
     def run(self, options: Any, context: Context) -> Outcome:
@@ -109,10 +104,7 @@ SUITES: dict[str, str] = {
 
 def suite(name: str) -> Suite:
     """The registered suite ``name``, instantiated (imports its module)."""
-    if name not in SUITES:
-        raise ValueError(f"unknown benchmark suite {name!r}; known: {', '.join(sorted(SUITES))}")
-    module, cls = SUITES[name].split(":")
-    return getattr(importlib.import_module(f"{__package__}.suites.{module}"), cls)()
+    return instantiate(SUITES, name, f"{__package__}.suites", Suite, "benchmark suite")
 
 
 def _versions() -> dict[str, str]:

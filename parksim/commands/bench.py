@@ -11,7 +11,7 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-from .options import add_options, options_from_args
+from .options import add_plugin_parsers, options_from_args
 
 __all__ = ["add_parser", "run", "RESULTS", "WORK"]
 
@@ -33,10 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "benchmarks/RESULTS.md from the records. --quick is a seconds-long smoke run whose record goes "
                     "under the work folder, not the results.")
     cmds = p.add_subparsers(dest="bench", metavar="SUITE", required=True)
-    for name in SUITES:
-        chosen = suite(name)
-        q = cmds.add_parser(name, help=chosen.help, description=chosen.description, formatter_class=p.formatter_class)
-        add_options(q, chosen.Options)
+    for q in add_plugin_parsers(cmds, (suite(name) for name in SUITES), p.formatter_class).values():
         q.add_argument("--results", type=Path, default=None,
                        help=f"results folder for the record (default {RESULTS}; --quick: WORK/results)")
         q.add_argument("--work", type=Path, default=WORK, help="scratch folder for datasets, bundles and runs")

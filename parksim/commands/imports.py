@@ -10,7 +10,7 @@ import argparse
 import json
 from typing import Any
 
-from .options import add_options, options_from_args
+from .options import add_options, add_plugin_parsers, options_from_args
 
 __all__ = ["add_parser", "run"]
 
@@ -28,11 +28,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                     "source). Per-image poses of a multi-camera recording are fitted to a fixed rig when they agree "
                     "with one; then the scene serves at ego poses, else at camera poses only.")
     formats = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    for name in IMPORTERS:
-        chosen = importer(name)
-        q = formats.add_parser(name, help=chosen.help, description=chosen.description,
-                               formatter_class=p.formatter_class)
-        add_options(q, chosen.Options)
+    for q in add_plugin_parsers(formats, (importer(name) for name in IMPORTERS), p.formatter_class).values():
         add_options(q, ImportSettings)
     return p
 

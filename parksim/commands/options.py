@@ -23,13 +23,14 @@ import dataclasses
 import math
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+from ..plugins import Plugin
 from .argtypes import integer, number
 
-__all__ = ["add_options", "options_from_args"]
+__all__ = ["add_options", "add_plugin_parsers", "options_from_args"]
 
 _UNSET = object()
 """The namespace value of an optional positional argument left out (options take ``argparse.SUPPRESS``)."""
@@ -178,3 +179,24 @@ def options_from_args(cls: type[T], args: argparse.Namespace, quick: bool = Fals
         elif quick and "quick" in f.metadata:
             values[f.name] = f.metadata["quick"]
     return cls(**values)
+
+
+def add_plugin_parsers(subparsers: argparse._SubParsersAction, plugins: Iterable[Plugin],
+                       formatter_class: type[argparse.HelpFormatter]) -> dict[str, argparse.ArgumentParser]:
+    """One sub-command per plug-in (an importer, a benchmark suite), its options built from its ``Options``.
+
+    Args:
+        subparsers: the command's sub-command group.
+        plugins: the plug-ins, in ``--help`` order.
+        formatter_class: the help formatter of the command's parser.
+
+    Returns:
+        Each plug-in's parser by name, for the options its command adds to every one.
+    """
+    parsers = {}
+    for plugin in plugins:
+        q = subparsers.add_parser(plugin.name, help=plugin.help, description=plugin.description,
+                                  formatter_class=formatter_class)
+        add_options(q, plugin.Options)
+        parsers[plugin.name] = q
+    return parsers

@@ -13,23 +13,18 @@ are imported to build ``parksim import --help``: they import torch, cv2 and the 
 
 from __future__ import annotations
 
-import importlib
-from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from abc import abstractmethod
+from typing import Any
 
 from ..checked_options import CheckedOptions, check_options
+from ..plugins import Plugin, instantiate
 from .recording import Recording
 
 __all__ = ["Importer", "IMPORTERS", "importer", "CheckedOptions", "check_options"]
 
 
-class Importer(ABC):
+class Importer(Plugin):
     """A recording format (see the module docstring)."""
-
-    name: ClassVar[str]
-    help: ClassVar[str]
-    description: ClassVar[str]
-    Options: ClassVar[type]
 
     @abstractmethod
     def load(self, options: Any) -> Recording:
@@ -54,7 +49,4 @@ IMPORTERS: dict[str, str] = {
 
 def importer(name: str) -> Importer:
     """The registered importer ``name``, instantiated (imports its module)."""
-    if name not in IMPORTERS:
-        raise ValueError(f"unknown importer {name!r}; known: {', '.join(sorted(IMPORTERS))}")
-    module, cls = IMPORTERS[name].split(":")
-    return getattr(importlib.import_module(f"{__package__}.{module}"), cls)()
+    return instantiate(IMPORTERS, name, __package__ or "parksim.importers", Importer, "importer")

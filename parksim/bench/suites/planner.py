@@ -49,9 +49,10 @@ class PlannerOptions:
     bundle: Path | None = field(default=None, metadata={
         "help": "scene bundle with a slot map (default: --gaussians surface Gaussians of synth --preset, made under "
                 "--work)"})
-    preset: str = field(default="scene1", metadata={"help": "synth preset of the default bundle", "quick": "tiny"})
+    preset: str = field(default="scene1", metadata={"help": "synth preset the bundle is made from without --bundle",
+                                                    "quick": "tiny"})
     gaussians: int = field(default=150_000, metadata={
-        "help": "Gaussians of the default bundle (only the perception planner renders them)", "low": 1,
+        "help": "Gaussians of the bundle made without --bundle (only the perception planner renders them)", "low": 1,
         "quick": 3000})
     scale: float = field(default=0.5, metadata={"help": "fisheye render scale the BEV is made from", "low": 0.01,
                                                 "high": 1.0})

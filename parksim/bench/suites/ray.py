@@ -37,7 +37,7 @@ class RayOptions:
     bundle: Path | None = field(default=None, metadata={
         "help": "bundle to serve (default: --gaussians Gaussians on the surfaces of synth scene1 at 640x480, "
                 "made under --work; the tiny garage under --quick)"})
-    gaussians: int = field(default=200_000, metadata={"help": "Gaussians of the default scene", "low": 1,
+    gaussians: int = field(default=200_000, metadata={"help": "Gaussians of the scene made without --bundle", "low": 1,
                                                        "quick": 2_000})
     clients: int = field(default=16, metadata={"help": "concurrent clients", "low": 1, "quick": 4})
     duration: float = field(default=30.0, metadata={"help": "seconds of load per configuration", "low": 0.1,

@@ -31,7 +31,7 @@ class ServerOptions:
     bundle: Path | None = field(default=None, metadata={
         "help": "bundle to serve (default: --gaussians Gaussians on the surfaces of synth scene1 at 640x480, "
                 "made under --work; the tiny garage under --quick)"})
-    gaussians: int = field(default=200_000, metadata={"help": "Gaussians of the default scene", "low": 1,
+    gaussians: int = field(default=200_000, metadata={"help": "Gaussians of the scene made without --bundle", "low": 1,
                                                        "quick": 2_000})
     requests: int = field(default=20, metadata={"help": "sequential requests per latency case", "low": 1,
                                                 "quick": 3})

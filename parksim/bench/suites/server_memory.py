@@ -38,16 +38,16 @@ class ServerMemoryOptions:
     bundle: Path | None = field(default=None, metadata={
         "help": "bundle to serve (default: --gaussians Gaussians on the surfaces of synth scene1 at 640x480, "
                 "made under --work; the tiny garage under --quick)"})
-    gaussians: int = field(default=50_000, metadata={"help": "Gaussians of the default scene", "low": 1,
+    gaussians: int = field(default=50_000, metadata={"help": "Gaussians of the scene made without --bundle", "low": 1,
                                                       "quick": 2_000})
     hold: float = field(default=5.0, metadata={"help": "seconds the never-reading clients are held", "low": 0,
                                                "quick": 0.5})
     clients: int = field(default=8, metadata={"help": "never-reading clients", "low": 1, "quick": 4})
     max_reply_mib: float = field(default=64.0, metadata={
-        "help": "the server's largest reply (parksim serve --max-reply-mib; its default); keep it well above the "
+        "help": "the server's largest reply (as parksim serve --max-reply-mib); keep it well above the "
                 "kernel's socket buffers (a few MiB), or they take whole replies", "low": 1, "quick": 8.0})
     reply_budget_mib: float = field(default=256.0, metadata={
-        "help": "the server's reply budget of the bounded phase (parksim serve --reply-budget-mib; its default)",
+        "help": "the server's reply budget of the bounded phase (as parksim serve --reply-budget-mib)",
         "low": 1, "quick": 16.0})
 
     def __post_init__(self) -> None:
