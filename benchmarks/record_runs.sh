@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# The full-preset suite runs whose records were committed on 2026-11-27 (issue [14]), one at a time on a quiet
+# machine, then the dashboard. Run from the repository root after `make setup`; each suite writes
+# benchmarks/results/SUITE/STAMP-COMMIT.json. The render suite's reference is the package as it was before that
+# session (commit 1c52457), imported from a copy under another name and timed alternately in the same process.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+BIN=.venv/bin
+REF=${REF:-1c52457}
+AB=$(mktemp -d)
+trap 'rm -rf "$AB"' EXIT
+git archive "$REF" parksim | tar -x -C "$AB" && mv "$AB/parksim" "$AB/parksim_prev"
+
+PYTHONPATH="$AB" $BIN/parksim bench render --reference parksim_prev --quiet
+for suite in ipm ut-accuracy projection rasterize server scaling synth knobs env soak-server import ray stress; do
+  $BIN/parksim bench "$suite" --quiet
+done
+$BIN/parksim bench report
