@@ -72,3 +72,16 @@ def test_record_round_trips_non_finite_values_and_refuses_what_is_not_a_record(t
         read_record(bad)
     with pytest.raises(ValueError, match="reference needs its label"):
         Figure("x", 1.0, "ms", reference=2.0)
+
+
+def test_goals_in_the_figures_unit_are_checked_and_others_shown_as_written(tmp_path):
+    figures = [Figure("fast", 5.0, "ms", goal="<= 10 ms"), Figure("slow", 50.0, "ms", goal="<= 10 ms (target)"),
+               Figure("none failed", 0.0, "count", goal="0"), Figure("relative", 5.0, "ms", goal="<= 1.5x the other"),
+               Figure("psnr", 27.0, "dB", goal=">= 28 dB", better="higher")]
+    write_record(Record(suite="demo", command="parksim bench demo", commit="abc1234", date="2026-01-01T00:00:00+00:00",
+                        machine=Machine("host", "Test CPU", 2), figures=figures), tmp_path / "results")
+    rows = {line.split(" | ")[0][2:]: line for line in render_dashboard(tmp_path / "results", tmp_path).splitlines()
+            if line.startswith("| ") and any(unit in line for unit in (" ms", " dB", " count"))}
+    assert "<= 10 ms: met" in rows["fast"] and "<= 10 ms (target): not met" in rows["slow"]
+    assert "| 0: met |" in rows["none failed"] and ">= 28 dB: not met" in rows["psnr"]
+    assert "| <= 1.5x the other |" in rows["relative"]

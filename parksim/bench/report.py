@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 from .record import Figure, Record, records_in
@@ -40,6 +41,24 @@ def _ratio(f: Figure) -> str:
     return f"{_num(f.value / f.reference)}x ({f.better} is better)"
 
 
+_GOAL = re.compile(r"^\s*(<=|>=|<|>|=)?\s*(-?[0-9]+(?:\.[0-9]+)?(?:e[-+]?[0-9]+)?)(?:\s+(\S+))?(?:\s+\(.*\))?\s*$")
+"""A goal the report can check: an optional comparison, a number and nothing or the figure's unit, then an optional
+remark in brackets (``<= 250 ms``, ``0``, ``<= 3000 ms (100 frames in 300 s)``)."""
+
+
+def _goal(f: Figure) -> str:
+    """The goal with ``met`` / ``not met`` where it compares with a number in the figure's unit, else as written."""
+    if f.goal is None:
+        return ""
+    m = _GOAL.match(f.goal)
+    if m is None or m.group(3) not in (None, f.unit):
+        return f.goal
+    op, bound = m.group(1) or "=", float(m.group(2))
+    met = {"<=": f.value <= bound, ">=": f.value >= bound, "<": f.value < bound, ">": f.value > bound,
+           "=": f.value == bound}[op]
+    return f"{f.goal}: {'met' if met else 'not met'}"
+
+
 def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
@@ -63,7 +82,7 @@ def _suite_section(name: str, records: list[tuple[Path, Record]], out_dir: Path)
         reference = ("" if f.reference is None else
                      f"{_with_cpu(f.reference, f.reference_cpu, f.unit)}: {f.reference_label}")
         lines.append("| " + " | ".join(_cell(c) for c in (
-            target, _with_cpu(f.value, f.cpu, f.unit), reference, _ratio(f), f.goal or "", rec.machine.label,
+            target, _with_cpu(f.value, f.cpu, f.unit), reference, _ratio(f), _goal(f), rec.machine.label,
             rec.date[:10], f"[{path.stem}]({_link(path, out_dir)})")) + " |")
     plots = [(p, r) for p, r in records if r.plot]
     if plots:
