@@ -13,7 +13,7 @@ import torch
 
 from ..gaussians import SH_C0, GaussianScene
 
-__all__ = ["garage_scene", "cap_sh_degree", "read_points", "mean_spacing", "surface_bundle"]
+__all__ = ["garage_scene", "cap_sh_degree", "read_points", "mean_spacing", "surface_scene", "surface_bundle"]
 
 
 def read_points(dataset: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -76,39 +76,33 @@ def cap_sh_degree(scene: GaussianScene, degree: int) -> GaussianScene:
                          scene.sh[:, :(degree + 1) ** 2].contiguous(), sh_degree=degree)
 
 
-def surface_bundle(out: Path, preset: str, n: int, seed: int = 0, size: tuple[int, int] | None = None,
-                   bev_px: int | None = None) -> Path:
-    """A scene bundle made without training: ``n`` flat Gaussians sampled on the surfaces of a synth preset's garage
-    (floor, ceiling, pillars, walls, parked cars), coloured by its shader (slot lines included), with the preset's
-    rig and world map. The simulator benchmarks drive planners and servers on it (the tests' ``make_bundle``).
+def surface_scene(preset: str, n: int, seed: int = 0) -> tuple[GaussianScene, dict]:
+    """``n`` flat Gaussians sampled on the surfaces of a synth preset's garage (floor, ceiling, pillars, walls, parked
+    cars), coloured by its shader (slot lines included), and the garage's world map: a scene without training.
 
     Args:
-        out: bundle folder to write (gaussians.ply, rig.json, map.json, bundle.json).
         preset: a synth preset (``tiny``, ``scene1`` ...).
         n: number of Gaussians.
         seed: seed of the surface samples.
-        size: camera ``(width, height)``, default the preset's.
-        bev_px: BEV side in pixels, default the preset's.
 
     Returns:
-        ``out``. The Gaussians are stored spatially sorted, as ``parksim reconstruct`` stores them.
+        The float32 scene (SH degree 0, flat along each surface's normal) and the world map (``scene_map``).
     """
-    from .. import bundle as bundle_io
     from ..geometry import quaternion_from_rotation
     from ..synth.generate import scene_map
     from ..synth.layout import build_garage
     from ..synth.points import sample_points
     from ..synth.presets import get_preset
     from ..synth.raycast import BoxSet
-    from ..synth.rig import avm_rig, ego_box
+    from ..synth.rig import ego_box
     from ..synth.shading import Shader
 
-    p = get_preset(preset)
-    garage = build_garage(p.layout)
+    layout = get_preset(preset).layout
+    garage = build_garage(layout)
     boxes = BoxSet.from_boxes([*garage.boxes, ego_box(np.eye(4))])
     materials = [b.material for b in garage.boxes] + ["ego"]
     colors = np.array([b.color for b in garage.boxes] + [(0.16, 0.17, 0.19)])
-    shader = Shader(garage, boxes, materials, colors, p.layout.seed)
+    shader = Shader(garage, boxes, materials, colors, layout.seed)
     span = np.stack([np.eye(4), np.eye(4)])
     span[1, 0, 3] = garage.length
     xyz, rgb, normals = sample_points(garage, shader, boxes, materials, span, n, seed, noise=0.005)
@@ -122,7 +116,32 @@ def surface_bundle(out: Path, preset: str, n: int, seed: int = 0, size: tuple[in
     sh = ((torch.from_numpy(rgb).double() / 255.0 - 0.5) / SH_C0)[:, None, :]
     scene = GaussianScene(torch.from_numpy(xyz), quaternion_from_rotation(torch.from_numpy(frames)),
                           log_scales.clone(), torch.full((n,), 2.5, dtype=torch.float64), sh, 0).to(torch.float32)
+    return scene, scene_map(garage)
+
+
+def surface_bundle(out: Path, preset: str, n: int, seed: int = 0, size: tuple[int, int] | None = None,
+                   bev_px: int | None = None) -> Path:
+    """``surface_scene`` written as a scene bundle with the preset's rig and world map; the simulator benchmarks
+    (and the tests' ``make_bundle``) drive planners and servers on it.
+
+    Args:
+        out: bundle folder to write (gaussians.ply, rig.json, map.json, bundle.json).
+        preset: a synth preset (``tiny``, ``scene1`` ...).
+        n: number of Gaussians.
+        seed: seed of the surface samples.
+        size: camera ``(width, height)``, default the preset's.
+        bev_px: BEV side in pixels, default the preset's.
+
+    Returns:
+        ``out``. The Gaussians are stored spatially sorted, as ``parksim reconstruct`` stores them.
+    """
+    from .. import bundle as bundle_io
+    from ..synth.presets import get_preset
+    from ..synth.rig import avm_rig
+
+    p = get_preset(preset)
+    scene, world_map = surface_scene(preset, n, seed)
     width, height = size or (p.width, p.height)
     meta = {"source": f"synthetic garage {preset!r} (surface samples, not trained)", "gaussians": n}
     return bundle_io.save(out, bundle_io.Bundle(scene.spatially_sorted(), avm_rig(width, height, bev_px or p.bev_px),
-                                                scene_map(garage), meta))
+                                                world_map, meta))
