@@ -12,7 +12,8 @@ trap 'rm -rf "$AB"' EXIT
 git archive "$REF" parksim | tar -x -C "$AB" && mv "$AB/parksim" "$AB/parksim_prev"
 
 PYTHONPATH="$AB" $BIN/parksim bench render --reference parksim_prev --quiet
-for suite in ipm ut-accuracy projection rasterize server scaling synth knobs env soak-server import ray stress; do
+for suite in ipm ut-accuracy projection rasterize server scaling synth knobs env soak-server import ray stress \
+             server-memory batch pose-refine; do
   $BIN/parksim bench "$suite" --quiet
 done
 $BIN/parksim bench report
