@@ -105,6 +105,63 @@ def test_border_prediction_between_1_and_5_percent():
     assert PARKSIM.sweep_options(DecodeOptions()).margin == 0.01
 
 
+def _maps(cells: list[tuple[int, int, float, float]]) -> PointMaps:
+    """A 16x16 grid with a T point of direction 0 per ``(row, col, offset_x, confidence)``, offset_y 0.5."""
+    logits = torch.full((1, 6, 16, 16), -10.0)
+    for row, col, offset_x, confidence in cells:
+        logits[0, :, row, col] = torch.tensor([math.log(confidence / (1 - confidence)), -5.0,
+                                               math.log(offset_x / (1 - offset_x)), 0.0, 5.0, 0.0])
+    return PointMaps(logits)
+
+
+def _decode_and_score(protocol: Protocol, maps: PointMaps, labels: SlotLabels, decode: DecodeOptions) -> Metrics:
+    """Decode at the operating point and for the sweep as ``evaluate_folder`` does, and score the points."""
+    det = Detections(decode_points(maps, 0, 600, 600, protocol.decode_options(decode)))
+    sweep = Detections(decode_points(maps, 0, 600, 600, protocol.sweep_options(decode)))
+    return _score(protocol, det, labels, sweep)["points"]
+
+
+def test_dmpr_nms_lets_a_suppressed_point_suppress():
+    """Three points in a row 30 px apart (u = 0.30, 0.35, 0.40 of 600 px), A 0.9, B 0.5, C 0.3, each labelled;
+    NMS suppresses within 1/16 = 37.5 px on both axes, so A-B and B-C are close, A-C (60 px) not.
+
+    ParkSim's greedy NMS: A is kept, B is suppressed by A, C is close only to the suppressed B and is kept: A and C.
+    Scored by ParkSim: TP 2 of 3 labels, recall 2/3; ranked A, C both TP at recall 1/3, 2/3 with precision 1:
+    all-point AP 1/3 + 1/3 = 2/3. DMPR-PS' ``non_maximum_suppression`` compares every pair: A suppresses B and B,
+    though suppressed, suppresses C: A alone. Scored by DMPR-PS: recall 1/3; TP confidences [0, 0, 0.9] -> curve
+    recall 1/3 at precision 1, then the missed labels' 0 adds recall 1, precision 0; 11-point AP: recall 0 .. 0.3
+    (4 points) -> 1, 0.4 .. 1 -> 0: 4/11 = 0.364. (DMPR-PS' scoring of the greedy A, C, the old ``dmpr-ps``:
+    recall 2/3, curve 1/3 and 2/3 at precision 1, 11-point 0 .. 0.6 (7 points) -> 1: 7/11 = 0.636.)
+    """
+    maps = _maps([(8, 4, 0.8, 0.9), (8, 5, 0.6, 0.5), (8, 6, 0.4, 0.3)])
+    y = 8.5 / 16 * 600 - 0.5
+    labels = _labels([(u * 600 - 0.5, y, 0.0, 0.0) for u in (0.30, 0.35, 0.40)])
+    decode = DecodeOptions(threshold=0.1)
+    greedy = decode_points(maps, 0, 600, 600, PARKSIM.decode_options(decode))
+    assert [round(p.score, 3) for p in greedy] == [0.9, 0.3]
+    assert [round(p.score, 3) for p in decode_points(maps, 0, 600, 600, DMPR.decode_options(decode))] == [0.9]
+    parksim, dmpr = _decode_and_score(PARKSIM, maps, labels, decode), _decode_and_score(DMPR, maps, labels, decode)
+    assert _counts(parksim) == (2, 0, 3) and parksim.recall == pytest.approx(2 / 3)
+    assert parksim.ap == pytest.approx(2 / 3)
+    assert _counts(dmpr) == (1, 0, 3) and dmpr.recall == pytest.approx(1 / 3) and dmpr.ap == pytest.approx(4 / 11)
+    old = _score(DMPR, Detections(greedy), labels)["points"]
+    assert old.recall == pytest.approx(2 / 3) and old.ap == pytest.approx(7 / 11)
+
+
+def test_dmpr_border_test_in_float32():
+    """A point in the last column whose offset is float32(0.2): DMPR-PS (under NumPy 2) computes (15 + offset) / 16
+    in float32, which rounds to float32(0.95), and compares it with 1 - 0.05 taken to float32 as well: on the
+    border, kept (its label found, recall 1). In float64 the same position is 0.95000000019 > 0.95: dropped."""
+    maps = _maps([(8, 15, 0.2, 0.9)])
+    offset = float(maps.offset[0, 0, 8, 15])
+    assert (np.float32(15) + np.float32(offset)) / np.float32(16) == np.float32(0.95)
+    assert (15 + offset) / 16 > 0.95
+    assert decode_points(maps, 0, 600, 600, DecodeOptions(margin=0.05)) == []
+    labels = _labels([(float(np.float32(0.95)) * 600 - 0.5, 8.5 / 16 * 600 - 0.5, 0.0, 0.0)])
+    dmpr = _decode_and_score(DMPR, maps, labels, DecodeOptions())
+    assert _counts(dmpr) == (1, 0, 1) and dmpr.recall == 1.0
+
+
 def test_eleven_point_voc_ap_differs_from_all_point():
     """Two labels far apart; sweep detections d1 on label 0 (0.9), d2 on nothing (0.8), d3 on label 1 (0.7).
 

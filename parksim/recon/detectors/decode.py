@@ -49,6 +49,7 @@ class DecodeOptions:
     threshold: float = 0.5          # marking-point confidence
     margin: float = 0.01            # drop points this close to the border (fraction of the BEV side)
     nms: float = 1.0 / 16           # suppress weaker points within this box half-size (fraction of the side)
+    dmpr_ps: bool = False           # DMPR-PS' float32 positions and all-pairs NMS instead of ParkSim's (decode_points)
     # Slot width across the separators (entrance length x sin of the slot angle), so that a slanted slot and the
     # longer floor gap between two slanted bays differ: ParkSim's (ps2.0-like) slots are 2.5-2.6 m wide, parallel 6 m.
     short_width_m: tuple[float, float] = (2.0, 2.9)      # perpendicular and slanted slots
@@ -60,24 +61,46 @@ class DecodeOptions:
 
 
 def decode_points(maps: PointMaps, index: int, width: int, height: int, opts: DecodeOptions) -> list[MarkingPoint]:
-    """Marking points of image ``index`` of a batch, in the pixels of a ``width`` x ``height`` BEV."""
+    """Marking points of image ``index`` of a batch, in the pixels of a ``width`` x ``height`` BEV.
+
+    Cells above ``opts.threshold`` give positions ``u = (col + offset) / grid``, kept when ``margin <= u <= 1 -
+    margin`` on both axes; then two points closer than ``opts.nms`` on both axes are resolved for the stronger.
+    ParkSim's rules: positions in float64, greedy NMS (the points by falling confidence, each suppressed only by a
+    kept one), output by falling confidence. ``opts.dmpr_ps``: DMPR-PS' ``get_predicted_points`` under NumPy 2,
+    positions, border test and NMS distances in float32, NMS over every pair (the weaker of two close points is
+    dropped even when the stronger was dropped itself, the later in grid order on a tie), output in grid order.
+    """
     conf = maps.confidence[index, 0].detach()
     grid_h, grid_w = conf.shape
     off, direc, shape = maps.offset[index].detach(), maps.direction[index].detach(), maps.shape_l[index, 0].detach()
+    real = np.float32 if opts.dmpr_ps else np.float64
+    lo, hi = real(opts.margin), real(1 - opts.margin)
     candidates = []
-    for r, c in (conf > opts.threshold).nonzero().tolist():
-        u = (c + float(off[0, r, c])) / grid_w
-        v = (r + float(off[1, r, c])) / grid_h
-        if not (opts.margin <= u <= 1 - opts.margin and opts.margin <= v <= 1 - opts.margin):
+    for r, c in (conf > opts.threshold).nonzero().tolist():   # row-major: DMPR-PS' grid order
+        u = (real(c) + real(float(off[0, r, c]))) / real(grid_w)
+        v = (real(r) + real(float(off[1, r, c]))) / real(grid_h)
+        if not (lo <= u <= hi and lo <= v <= hi):
             continue
         candidates.append((float(conf[r, c]), u, v, math.atan2(float(direc[1, r, c]), float(direc[0, r, c])),
                            "L" if float(shape[r, c]) > 0.5 else "T"))
-    candidates.sort(key=lambda t: -t[0])
-    kept: list[tuple] = []
-    for cand in candidates:
-        if all(abs(cand[1] - k[1]) >= opts.nms or abs(cand[2] - k[2]) >= opts.nms for k in kept):
-            kept.append(cand)
-    return [MarkingPoint(u * width - 0.5, v * height - 0.5, d, s, score) for score, u, v, d, s in kept]
+    nms = real(opts.nms)
+
+    def close(a: tuple, b: tuple) -> bool:
+        return bool(abs(a[1] - b[1]) < nms and abs(a[2] - b[2]) < nms)
+
+    if opts.dmpr_ps:
+        suppressed = [False] * len(candidates)
+        for i, a in enumerate(candidates):
+            for j in range(i + 1, len(candidates)):
+                if close(a, candidates[j]):
+                    suppressed[i if a[0] < candidates[j][0] else j] = True
+        kept = [cand for cand, out in zip(candidates, suppressed) if not out]
+    else:
+        kept = []
+        for cand in sorted(candidates, key=lambda t: -t[0]):
+            if not any(close(cand, k) for k in kept):
+                kept.append(cand)
+    return [MarkingPoint(float(u) * width - 0.5, float(v) * height - 0.5, d, s, score) for score, u, v, d, s in kept]
 
 
 def _unit(angle: float) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Detection scoring protocols: ParkSim's own rules and DMPR-PS' published evaluation, selectable by name.
 
-A protocol decides where detections are decoded (border margin, sweep threshold), when a detection matches a
+A protocol decides how detections are decoded (border margin, NMS, sweep threshold), when a detection matches a
 label, and how AP is integrated. Both score the same ``Detections`` against the same ``SlotLabels``; the
 differences are listed side by side in ``docs/detection_protocol.md``.
 
@@ -114,7 +114,8 @@ DMPR_SQUARED_DISTANCE = 0.000277778
 DMPR_DIRECTION_RAD = 0.5235987755982988
 """``config.DIRECTION_ANGLE_THRESH``: 30 deg, compared with <."""
 DMPR_BOUNDARY = 0.05
-"""``config.BOUNDARY_THRESH``: predictions outside [0.05, 0.95] of either side are dropped before NMS."""
+"""``config.BOUNDARY_THRESH``: predictions outside [0.05, 0.95] of either side (in float32) are dropped before
+NMS."""
 DMPR_SWEEP_THRESHOLD = 0.01
 """``evaluate.py``: marking points for the AP sweep are decoded at confidence 0.01."""
 
@@ -218,16 +219,19 @@ class Protocol(ABC):
 
     name: ClassVar[str]
     margin: ClassVar[float]            # drop predictions this close to the border (fraction of the side)
+    dmpr_nms: ClassVar[bool]           # DMPR-PS' float32 positions and all-pairs NMS (``DecodeOptions.dmpr_ps``)
     sweep_threshold: ClassVar[float]   # confidence down to which detections enter the AP sweep
     slot_ap_at_operating: ClassVar[bool]  # slots' AP from the operating-point detections, not the sweep
 
     def decode_options(self, decode: DecodeOptions) -> DecodeOptions:
-        """``decode`` (the operating point) with this protocol's border margin."""
-        return replace(decode, margin=self.margin)
+        """``decode`` (the operating point) with this protocol's border margin and NMS."""
+        return replace(decode, margin=self.margin, dmpr_ps=self.dmpr_nms)
 
     def sweep_options(self, decode: DecodeOptions) -> DecodeOptions:
-        """The decoding for the AP sweep: this protocol's margin and sweep threshold (or ``decode``'s if lower)."""
-        return replace(decode, margin=self.margin, threshold=min(self.sweep_threshold, decode.threshold))
+        """The decoding for the AP sweep: this protocol's margin, NMS and sweep threshold (or ``decode``'s if
+        lower)."""
+        return replace(decode, margin=self.margin, dmpr_ps=self.dmpr_nms,
+                       threshold=min(self.sweep_threshold, decode.threshold))
 
     @abstractmethod
     def match_points(self, det: Detections, labels: SlotLabels) -> Scored:
@@ -243,18 +247,20 @@ class Protocol(ABC):
 
     def describe(self) -> dict[str, Any]:
         """The protocol's name and settings, for reports."""
-        return {"name": self.name, "margin": self.margin, "sweep_threshold": self.sweep_threshold,
+        return {"name": self.name, "margin": self.margin, "nms": "all pairs" if self.dmpr_nms else "greedy",
+                "sweep_threshold": self.sweep_threshold,
                 "slot_ap_at_operating": self.slot_ap_at_operating}
 
 
 @dataclass(frozen=True)
 class ParkSimProtocol(Protocol):
     """ParkSim's rules: metric thresholds (``MatchOptions``), slot-angle check, no shape check, detection-first
-    greedy matching (each label once), all-point AP, 1 % border margin."""
+    greedy matching (each label once), all-point AP, 1 % border margin, greedy NMS in float64."""
 
     match: MatchOptions = MatchOptions()
     name: ClassVar[str] = "parksim"
     margin: ClassVar[float] = 0.01
+    dmpr_nms: ClassVar[bool] = False
     sweep_threshold: ClassVar[float] = 0.05
     slot_ap_at_operating: ClassVar[bool] = False
 
@@ -282,6 +288,7 @@ class DMPRPSProtocol(Protocol):
 
     name: ClassVar[str] = "dmpr-ps"
     margin: ClassVar[float] = DMPR_BOUNDARY
+    dmpr_nms: ClassVar[bool] = True
     sweep_threshold: ClassVar[float] = DMPR_SWEEP_THRESHOLD
     slot_ap_at_operating: ClassVar[bool] = True
 
