@@ -168,6 +168,8 @@ class ParkingEnv(gym.Env):
         self.pos_tol, self.yaw_tol, self.vehicle = pos_tol, yaw_tol, vehicle
         self.render_mode = render_mode
         self.obstacles = Obstacles(self.world_map.get("obstacles", []))
+        (x0, x1), (y0, y1) = info["bounds"]["x"], info["bounds"]["y"]
+        self._start_box = ((x0 - _MARGIN_M, x1 + _MARGIN_M), (y0 - _MARGIN_M, y1 + _MARGIN_M))
         self.action_space: spaces.Box = spaces.Box(-1.0, 1.0, (2,), np.float32)
         self.observation_space = spaces.Dict(self._image_spaces(info) | self._state_spaces(info))
         self.state = VehicleState(0.0, 0.0, 0.0)
@@ -211,24 +213,41 @@ class ParkingEnv(gym.Env):
                 return VehicleState(x, y, float(wrap_angle(yaw)))
         raise RuntimeError("no collision-free start pose found on the aisles")
 
+    def _given_start(self, start: Any) -> VehicleState:
+        """``options["start"]`` as a standing state, yaw wrapped; refused unless 3 finite values inside the box."""
+        pose = np.asarray(start, np.float64)
+        if pose.shape != (3,):
+            raise ValueError(f"options['start'] must be (x, y, yaw), 3 numbers, got {start!r}")
+        if not np.isfinite(pose).all():
+            raise ValueError(f"options['start'] {pose.tolist()} has a non-finite value (NaN or inf)")
+        (x0, x1), (y0, y1) = self._start_box
+        x, y, yaw = map(float, pose)
+        if not (x0 <= x <= x1 and y0 <= y <= y1):
+            raise ValueError(f"options['start'] {pose.tolist()} is outside the scene: x must lie in [{x0:g}, {x1:g}] "
+                             f"and y in [{y0:g}, {y1:g}] (its bounds plus {_MARGIN_M:g} m)")
+        return VehicleState(x, y, float(wrap_angle(yaw)))
+
     def begin(self, seed: int | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
         """Start an episode without rendering (``reset`` = ``begin`` + ``observe``); returns its info.
 
         Args:
             seed: seeds ``np_random`` (gymnasium's rule: only the first reset needs one).
-            options: ``start`` = ``(x, y, yaw)`` and/or ``slot`` = a free slot's id.
+            options: ``start`` = ``(x, y, yaw)`` (finite, within the scene's bounds plus 5 m; yaw is wrapped to
+                [-pi, pi)) and/or ``slot`` = a free slot's id.
 
         Returns:
             The info dict (``slot``, ``distance``, ``heading_error``, ``collision``, ``is_success``, ``speed``,
             and ``pose`` when privileged).
 
         Raises:
-            ValueError: ``options["slot"]`` is not a free slot.
+            ValueError: ``options["start"]`` is not 3 finite numbers within the bounds (nothing is changed then),
+                or ``options["slot"]`` is not a free slot.
             RuntimeError: no collision-free random start in 200 tries.
         """
-        super().reset(seed=seed)
         options = options or {}
-        self.state = (VehicleState(*map(float, options["start"])) if "start" in options else self._random_start())
+        start = self._given_start(options["start"]) if "start" in options else None
+        super().reset(seed=seed)
+        self.state = start if start is not None else self._random_start()
         slots = free_slots(self.world_map)
         if "slot" in options:
             chosen = [s for s in slots if s["id"] == options["slot"]]
@@ -248,7 +267,13 @@ class ParkingEnv(gym.Env):
 
         Returns:
             ``(reward, terminated, info)``: terminated when parked or collided.
+
+        Raises:
+            ValueError: ``action`` holds a NaN or an infinity; it is refused and the state is unchanged.
         """
+        if not np.isfinite(np.asarray(action, np.float64)).all():
+            raise ValueError(f"action {np.asarray(action).tolist()} has a non-finite value (NaN or inf): refused, "
+                             "the vehicle state is unchanged")
         accel, steer = to_controls(action, self.vehicle)
         self.state = step(self.state, accel, steer, self.vehicle)
         collided = self.obstacles.collides(self.state.pose, self.vehicle)
@@ -271,6 +296,9 @@ class ParkingEnv(gym.Env):
         Returns:
             ``(observation, info)``: uint8 ``[H, W, 3]`` per camera, ``bev`` when asked, ``state`` float32
             ``[v, steer, slot_x, slot_y, slot_yaw]``, ``pose`` when privileged; info as ``begin``.
+
+        Raises:
+            ValueError: as ``begin``: a bad ``options["start"]`` or ``options["slot"]``.
         """
         info = self.begin(seed, options)
         return self.observe(self.frame()), info
@@ -283,6 +311,9 @@ class ParkingEnv(gym.Env):
 
         Returns:
             ``(observation, reward, terminated, truncated=False, info)``.
+
+        Raises:
+            ValueError: ``action`` holds a NaN or an infinity; it is refused and the state is unchanged.
         """
         reward, terminated, info = self.advance(action)
         return self.observe(self.frame()), reward, terminated, False, info

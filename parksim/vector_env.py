@@ -97,8 +97,15 @@ class _ParkVectorEnv(VectorEnv, abc.ABC):
         return self._batch(outcomes)
 
     def step(self, actions: Any) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every sub-env; one whose episode ended on the previous step is reset instead (reward 0, no end)."""
-        acts = np.asarray(actions, np.float32).reshape(self.num_envs, *self.single_action_space.shape or ())
+        """Step every sub-env; one whose episode ended on the previous step is reset instead (reward 0, no end).
+
+        A batch holding a NaN or an infinity is refused (``ValueError``) before any sub-env moves.
+        """
+        acts = np.asarray(actions, np.float64).reshape(self.num_envs, *self.single_action_space.shape or ())
+        bad = np.flatnonzero(~np.isfinite(acts.reshape(self.num_envs, -1)).all(axis=1))
+        if bad.size:
+            raise ValueError(f"actions of sub-envs {bad.tolist()} ({acts[bad].tolist()}) have a non-finite value "
+                             "(NaN or inf): the batch is refused, no sub-env's state changed")
         calls: list[Call] = [("reset", None, None) if self._ended[i] else ("step", acts[i], None)
                              for i in range(self.num_envs)]
         outcomes = self._run(calls)

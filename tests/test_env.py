@@ -4,6 +4,7 @@ seeding, and the same frames in-process and via the server."""
 from __future__ import annotations
 
 import math
+from contextlib import closing
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +13,7 @@ from gymnasium.utils.env_checker import check_env
 
 from parksim.env import MAX_EPISODE_STEPS, ParkingEnv, heading_error, slot_pose, to_action, to_controls
 from parksim.server import create_app
+from parksim.vector_env import BatchRenderVectorEnv
 from parksim.vehicle import VehicleParams, wrap_angle
 from sim_fixtures import make_bundle, running_server
 
@@ -125,3 +127,64 @@ def test_server_and_in_process_env_give_the_same_frames(bundle_dir):
         for key in ("state", "front", "left", "bev"):
             np.testing.assert_array_equal(o1[key], o2[key])
         assert o1["front"].std() > 1
+
+
+@pytest.mark.parametrize("cameras", [[], ["front"]], ids=["state-only", "camera"])
+def test_a_non_finite_action_is_refused_and_leaves_the_state_unchanged(bundle_dir, cameras):
+    env, twin = (ParkingEnv(bundle=bundle_dir, cameras=cameras) for _ in range(2))
+    env.reset(seed=4)
+    twin.reset(seed=4)
+    env.step(np.array([0.8, 0.3], np.float32))
+    twin.step(np.array([0.8, 0.3], np.float32))
+    before = env.state
+    for bad in ([math.nan, 0.0], [0.0, math.inf], [-math.inf, math.nan]):
+        with pytest.raises(ValueError, match=r"^action \[.*(nan|inf).*non-finite.*refused, the vehicle state is "
+                                             r"unchanged$"):
+            env.step(np.array(bad, np.float32))
+        assert env.state == before
+    good = np.array([0.5, -0.4], np.float32)
+    (obs, reward, terminated, _, info), (tobs, treward, tterminated, _, tinfo) = env.step(good), twin.step(good)
+    assert env.state == twin.state and (reward, terminated, info) == (treward, tterminated, tinfo)
+    assert set(obs) == {"state", *cameras} and np.isfinite(obs["state"]).all()
+    for key in obs:
+        np.testing.assert_array_equal(obs[key], tobs[key], err_msg=key)
+
+
+def test_a_vector_step_with_a_non_finite_action_moves_no_sub_env(bundle_dir):
+    with (running_server(create_app(bundle_dir.parent)) as url,
+          closing(BatchRenderVectorEnv(3, server=url, scene=bundle_dir.name, cameras=[], max_episode_steps=3)) as envs):
+        envs.reset(seed=2)
+        envs.step(np.full((3, 2), 0.5, np.float32))
+        before = [e.state for e in envs.envs]
+        actions = np.array([[0.5, 0.1], [math.nan, 0.0], [0.25, math.inf]], np.float32)
+        with pytest.raises(ValueError, match=r"^actions of sub-envs \[1, 2\] \(\[\[nan, 0.0\], \[0.25, inf\]\]\) "
+                                             r"have a non-finite value.*no sub-env's state changed$"):
+            envs.step(actions)
+        assert [e.state for e in envs.envs] == before
+        obs, _, _, truncated, _ = envs.step(np.zeros((3, 2), np.float32))
+        assert np.isfinite(obs["state"]).all() and not truncated.any()
+        assert envs.step(np.zeros((3, 2), np.float32))[3].all(), "the refused step did not count towards the limit"
+
+
+@pytest.mark.parametrize(("start", "message"), [
+    ((math.nan, 0.0, 0.0), r"options\['start'\] \[nan, 0.0, 0.0\] has a non-finite value"),
+    ((10.0, 0.0, math.inf), r"options\['start'\] \[10.0, 0.0, inf\] has a non-finite value"),
+    ((10.0, 0.0), r"options\['start'\] must be \(x, y, yaw\), 3 numbers, got \(10.0, 0.0\)"),
+    ((10.0, 0.0, 0.0, 1.5), r"must be \(x, y, yaw\), 3 numbers, got \(10.0, 0.0, 0.0, 1.5\)"),
+    ((500.0, 0.0, 0.0), r"\[500.0, 0.0, 0.0\] is outside the scene: x must lie in \[-5, 39\] and y in "
+                        r"\[-13.7, 13.7\] \(its bounds plus 5 m\)"),
+    ((10.0, -40.0, 0.0), r"\[10.0, -40.0, 0.0\] is outside the scene"),
+], ids=["nan", "inf-yaw", "2-values", "4-values", "far-x", "far-y"])
+def test_a_bad_start_is_refused_with_its_reason(bundle_dir, start, message):
+    env = ParkingEnv(bundle=bundle_dir, cameras=[])
+    env.reset(seed=0)
+    before = env.state
+    with pytest.raises(ValueError, match=message):
+        env.reset(options={"start": start})
+    assert env.state == before, "a refused reset changes nothing"
+
+
+def test_a_start_yaw_is_wrapped_into_the_pose_box(bundle_dir):
+    env = ParkingEnv(bundle=bundle_dir, cameras=[], privileged=True)
+    obs, _ = env.reset(seed=0, options={"start": (10.0, 0.0, 2 * math.pi + 0.5)})
+    assert abs(env.state.yaw - 0.5) < 1e-12 and env.observation_space.contains(obs)
