@@ -95,8 +95,8 @@ def test_renders_are_the_single_process_servers(both):
         np.testing.assert_array_equal(a.images[name], b.images[name])
         np.testing.assert_array_equal(a.depth[name], b.depth[name])
     np.testing.assert_array_equal(a.bev, b.bev)
-    png = {"pose": POSE, "scale": 0.5, "api_key": KEY}
-    png_remote, png_local = (_ok(c.get("/render/left.png", params=png)).content for c in (remote, local))
+    png = {"pose": POSE, "scale": 0.5}
+    png_remote, png_local = (_ok(c.get("/render/left.png", params=png, headers=AUTH)).content for c in (remote, local))
     assert png_remote == png_local
     body = {"poses": [[12, 0.3, 0.2], [20, -0.2, 1.0]], "cameras": ["rear"], "scale": 0.25}
     (ra, rb), _ = decode_npz(_ok(remote.post("/render", json=body, headers=AUTH)).content)

@@ -228,7 +228,8 @@ def test_api_key_and_bind_policy(bundle_dir):
         assert r.status_code == 401 and "X-API-Key" in r.json()["detail"]
         assert c.get("/scenes", headers={"X-API-Key": "wrong"}).status_code == 401
         assert c.get("/scenes", headers={"X-API-Key": "s3cret"}).status_code == 200
-        assert c.get("/render/front.png", params={"pose": POSE, "api_key": "s3cret", **SMALL}).status_code == 200
+        png = c.get("/render/front.png", params={"pose": POSE, **SMALL}, headers={"X-API-Key": "s3cret"})
+        assert png.status_code == 200
     check_bind("127.0.0.1", None)
     check_bind("0.0.0.0", "key")
     with pytest.raises(ValueError, match="API key"):

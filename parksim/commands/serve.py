@@ -15,12 +15,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "serve", help="serve renders of scene bundles over HTTP (GET /render?pose=x,y,yaw, web viewer at /)",
         description="Load every scene bundle under --scenes once and serve GET/POST /render, /scenes, /healthz, "
                     "/metrics and the web viewer at /. API docs at /docs. Listens on loopback by default; any "
-                    "other interface needs an API key (--api-key or PARKSIM_API_KEY). The port is bound before the "
+                    "other interface needs an API key (--api-key-file or PARKSIM_API_KEY; --api-key shows the key "
+                    "in `ps`), which clients send as the X-API-Key header. Only requests whose Host is a loopback "
+                    "name or --host are answered, unless --host is 0.0.0.0 or ::. The port is bound before the "
                     "scenes load, so a busy port fails at once.")
     p.add_argument("--scenes", required=True, help="folder of bundle folders (or one bundle folder)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on")
     p.add_argument("--port", type=tcp_port, default=8000, help="TCP port, 1 to 65535")
-    p.add_argument("--api-key", help="key clients must send (X-API-Key); default: $PARKSIM_API_KEY")
+    key = p.add_mutually_exclusive_group()
+    key.add_argument("--api-key-file", metavar="PATH",
+                     help="file holding the key clients must send as X-API-Key (one trailing newline ignored); "
+                          "default: $PARKSIM_API_KEY")
+    key.add_argument("--api-key", help="the key itself; visible to every user in `ps`: prefer --api-key-file or "
+                                       "$PARKSIM_API_KEY")
     p.add_argument("--workers", type=integer(1), help="render threads (default 1: each render uses every core)")
     p.add_argument("--queue", type=integer(0), dest="queue_size",
                    help="requests that may wait before 503 (default 8)")
@@ -61,8 +68,10 @@ def run(args: argparse.Namespace) -> int:
     """Check the flags, build the settings, and serve until interrupted (``parksim.server.launch``)."""
     from parksim.server import Settings
     from parksim.server.launch import serve, serve_ray
+    from parksim.server.settings import read_key_file
 
-    settings = Settings.from_env(api_key=args.api_key, workers=args.workers, queue_size=args.queue_size,
+    api_key = read_key_file(args.api_key_file) if args.api_key_file is not None else args.api_key
+    settings = Settings.from_env(api_key=api_key, workers=args.workers, queue_size=args.queue_size,
                                  max_scale=args.max_scale, max_batch=args.max_batch,
                                  max_reply_bytes=_mib(args.max_reply_mib),
                                  reply_budget_bytes=_mib(args.reply_budget_mib))

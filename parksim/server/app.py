@@ -1,7 +1,8 @@
 """``create_app``: the FastAPI app over a scenes folder (or given bundles), with error mapping and metrics.
 
 Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is allowed:
-422 bad request values, 404 unknown scene or route, 401 missing key, 413 body or reply too large,
+422 bad request values, 404 unknown scene or route, 401 missing key, 400 a key in the query string,
+421 a ``Host`` the server does not answer to (``Settings.allowed_hosts``), 413 body or reply too large,
 503 (with Retry-After) when the render queue or the reply budget is full.
 """
 
@@ -22,6 +23,7 @@ from parksim.bundle import Bundle
 from parksim.frames import RequestError
 from parksim.sim import LocalSim
 
+from .auth import host_name
 from .budget import BudgetFull, ReplyBudget, ReplyTooLarge
 from .docs import install_docs
 from .metrics import Metrics
@@ -93,15 +95,20 @@ def _install_errors(app: FastAPI) -> None:
         return _error(exc.status_code, str(detail), getattr(exc, "headers", None))
 
 
-def _install_middleware(app: FastAPI, limit: int, metrics: Metrics) -> None:
-    """Body size limit (``limit`` bytes) and per-request metrics (labelled by route template, not by raw path)."""
+def _install_middleware(app: FastAPI, settings: Settings, metrics: Metrics) -> None:
+    """Host check, body size limit and per-request metrics (labelled by route template, not by raw path)."""
+    limit, hosts = settings.max_body_bytes, settings.allowed_hosts
 
     @app.middleware("http")
     async def _observe(request: Request, call_next: Any) -> Any:
         start = time.perf_counter()
         length = request.headers.get("content-length")
         bad_length = length is None or not length.isdigit() or int(length) > limit
-        if request.method in ("POST", "PUT", "PATCH") and bad_length:
+        host = request.headers.get("host", "")
+        if hosts is not None and host_name(host) not in hosts:
+            response = _error(421, f"this server does not answer to Host {host!r}: use one of "
+                                   f"{', '.join(hosts)} (a page reaching it through another name is refused)")
+        elif request.method in ("POST", "PUT", "PATCH") and bad_length:
             response = _error(413 if length and length.isdigit() else 411,
                               f"the request body must come with a Content-Length of at most {limit} bytes")
         else:
@@ -142,7 +149,7 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     app.state.settings, app.state.registry, app.state.pool, app.state.budget, app.state.metrics = (
         settings, registry, pool, budget, metrics)
     _install_errors(app)
-    _install_middleware(app, settings.max_body_bytes, metrics)
+    _install_middleware(app, settings, metrics)
     app.include_router(router)
     app.include_router(protected)
     app.mount("/viewer", StaticFiles(directory=VIEWER_DIR), name="viewer")

@@ -2,7 +2,9 @@
 (:func:`serve_ray`), each serving until Ctrl-C or SIGTERM.
 
 What ``parksim serve`` runs, callable from Python with typed arguments. Both refuse a non-loopback interface
-without an API key and take the port before the scenes load, so a busy port fails at once.
+without an API key, answer only requests whose ``Host`` is a loopback name or ``host`` (unless bound to every
+interface; see :func:`parksim.server.auth.allowed_hosts`), and take the port before the scenes load, so a busy port
+fails at once.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 import uvicorn
 
 from .app import create_app
-from .auth import check_bind
+from .auth import allowed_hosts, check_bind
 from .settings import Settings
 
 __all__ = ["serve", "serve_ray", "bind", "wait_for_interrupt"]
@@ -25,6 +27,15 @@ __all__ = ["serve", "serve_ray", "bind", "wait_for_interrupt"]
 
 def _say(line: str) -> None:
     print(line, flush=True)
+
+
+def _guarded(host: str, settings: Settings) -> Settings:
+    """``settings`` checked for listening on ``host``, answering only the ``Host`` names it allows (unless the
+    caller set ``allowed_hosts`` itself)."""
+    check_bind(host, settings.api_key)
+    if settings.allowed_hosts is not None:
+        return settings
+    return settings.model_copy(update={"allowed_hosts": allowed_hosts(host)})
 
 
 def bind(host: str, port: int) -> list[socket.socket]:
@@ -72,7 +83,8 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
         settings: the server's limits and API key.
-        host: interface to listen on; other than loopback it needs ``settings.api_key``.
+        host: interface to listen on; other than loopback it needs ``settings.api_key``. Requests whose ``Host``
+            is neither a loopback name nor ``host`` are refused (421), unless ``host`` is 0.0.0.0 or ::.
         port: TCP port.
         log: receives the one line saying what is served where, once the scenes are loaded.
 
@@ -81,7 +93,7 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
         OSError: the port is taken (before any scene loads).
         parksim.bundle.BundleError: no loadable scene under ``scenes``.
     """
-    check_bind(host, settings.api_key)
+    settings = _guarded(host, settings)
     sockets = bind(host, port)
     try:
         app = create_app(scenes, settings)
@@ -104,7 +116,8 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
         settings: the server's limits and API key.
-        host: interface Serve's HTTP proxy listens on; other than loopback it needs ``settings.api_key``.
+        host: interface Serve's HTTP proxy listens on; other than loopback it needs ``settings.api_key``; the
+            ``Host`` check is as for :func:`serve`.
         port: TCP port of the proxy.
         replicas: fixed number of replicas (ignored with ``autoscale``).
         autoscale: (min, max) replicas, scaled on each replica's ongoing requests.
@@ -117,7 +130,7 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
             replica fails to start (one line each), or a non-loopback ``host`` without an API key.
         OSError: the port is taken (before Ray starts).
     """
-    check_bind(host, settings.api_key)
+    settings = _guarded(host, settings)
     try:
         from . import ray_serve  # optional dependency (parksim[ray]): imported only when asked for
     except ModuleNotFoundError as e:

@@ -95,8 +95,6 @@ CamerasText = Annotated[str | None, _checked(parse_cameras)]
 _SCENE = Field(None, max_length=200, description="scene id (GET /scenes); default: the first scene")
 _SCALE = Field(1.0, description="resolution factor of the fisheye views (1 = the rig's size); the server's "
                                 "limits are in GET /healthz")
-_API_KEY = Field(None, max_length=500, description="API key, when the server requires one and the "
-                                                 "X-API-Key header cannot be sent (e.g. an <img> tag)")
 _DEPTH = Field(False, description="also return per-camera depth (float32, metres along the ray; npz only)")
 
 
@@ -111,7 +109,6 @@ class RenderQuery(BaseModel):
     bev: bool = Field(False, description="also render the bird's-eye view (on/off, true/false, 1/0)")
     scale: float = _SCALE
     depth: bool = _DEPTH
-    api_key: str | None = _API_KEY
     format: Literal["npz", "png", "jpeg"] = Field("npz", description="npz: uint8 images + metadata for programs; "
                                                   "png/jpeg: one image, so exactly one view must be asked for")
 
@@ -123,7 +120,6 @@ class ViewQuery(BaseModel):
     pose: PoseText = Field(..., max_length=_MAX_POSE_TEXT, description=POSE_HELP, examples=["12.0,0.5,0.0"])
     scene: str | None = _SCENE
     scale: float = _SCALE
-    api_key: str | None = _API_KEY
 
 
 class RenderBatchRequest(BaseModel):

@@ -3,13 +3,37 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
-from pydantic import BaseModel, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
-__all__ = ["Settings", "API_KEY_ENV"]
+__all__ = ["Settings", "API_KEY_ENV", "read_key_file"]
 
 API_KEY_ENV = "PARKSIM_API_KEY"
-"""Environment variable holding the API key (the ``--api-key`` flag overrides it)."""
+"""Environment variable holding the API key (``--api-key-file`` and ``--api-key`` override it)."""
+
+
+def read_key_file(path: str | Path) -> str:
+    """The API key in ``path``: its text less one trailing newline (LF or CRLF).
+
+    Args:
+        path: a file holding the key, e.g. written by ``openssl rand -hex 32 > key``.
+
+    Returns:
+        The key.
+
+    Raises:
+        ValueError: the file cannot be read, is not UTF-8, or holds no key (one line naming the file).
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        reason = e.strerror if isinstance(e, OSError) else "not UTF-8 text"
+        raise ValueError(f"--api-key-file {path}: {reason}") from None
+    key = text.removesuffix("\n")   # read_text turns \r\n into \n
+    if not key.strip():
+        raise ValueError(f"--api-key-file {path}: the file holds no key (it is empty or whitespace only)")
+    return key
 
 
 class Settings(BaseModel):
@@ -36,7 +60,24 @@ class Settings(BaseModel):
     reply_budget_bytes: int = Field(256 << 20, ge=1 << 16, description="reply bytes rendered or being sent at once, "
                                     "over all clients; a request that would exceed it: 503")
     jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of single-view replies")
-    api_key: str | None = Field(None, description="required as X-API-Key header or api_key query when set")
+    api_key: str | None = Field(None, description="required as the X-API-Key header when set; not empty, no "
+                                "whitespace at either end (HTTP trims header values, so such a key could never match)")
+    allowed_hosts: tuple[str, ...] | None = Field(None, description="Host header names (port ignored) the server "
+                                                  "answers to, others get 421; None: any. parksim serve sets the "
+                                                  "loopback names and --host unless bound to 0.0.0.0 or ::")
+
+    @field_validator("api_key")
+    @classmethod
+    def _usable_key(cls, key: str | None) -> str | None:
+        if key is not None and (not key.strip() or key != key.strip()):
+            raise ValueError("the API key is empty or whitespace only" if not key.strip() else
+                             "the API key starts or ends with whitespace, which HTTP trims from headers")
+        return key
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _lower_case(cls, hosts: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        return None if hosts is None else tuple(h.strip("[]").lower() for h in hosts)
 
     @model_validator(mode="after")
     def _budget_holds_a_reply(self) -> Settings:

@@ -7,7 +7,15 @@ import { DEPTH_RANGE_M, drawDepth, drawDepthLegend, drawRGB } from "./draw.js";
 import { Minimap } from "./minimap.js";
 import { clampPose, coverage, startPose } from "./scene.js";
 
-const apiKey = new URLSearchParams(location.search).get("api_key");
+// The API key, when the server has one: opened as /#api_key=KEY. A fragment never reaches the server (nor proxies'
+// and servers' logs); it is kept for this tab in sessionStorage and taken out of the address bar and history.
+const KEY_ITEM = "parksim.apiKey";
+const given = new URLSearchParams(location.hash.slice(1)).get("api_key");
+if (given) {
+  sessionStorage.setItem(KEY_ITEM, given);
+  history.replaceState(null, "", location.pathname + location.search);
+}
+const apiKey = sessionStorage.getItem(KEY_ITEM);
 const state = { scene: null, info: null, pose: { x: 0, y: 0, yaw: 0 }, frames: 0, latencyMs: null, busy: false,
                 dirty: false, depth: false, depthShown: false, coverage: null, clamped: false };
 window.viewerState = state;
@@ -19,7 +27,8 @@ const wrap = (a) => (Math.abs(a) <= Math.PI ? a : Math.atan2(Math.sin(a), Math.c
 
 async function failure(r, path) {
   const body = await r.json().catch(() => ({ detail: r.statusText }));
-  return new Error(`${path}: ${r.status} ${body.detail}`);
+  const hint = r.status === 401 ? " (open the viewer as /#api_key=KEY)" : "";
+  return new Error(`${path}: ${r.status} ${body.detail}${hint}`);
 }
 
 async function getJSON(path) {
