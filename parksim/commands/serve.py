@@ -13,13 +13,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     """Register ``serve`` (cheap: no heavy imports)."""
     p = subparsers.add_parser(
         "serve", help="serve renders of scene bundles over HTTP (GET /render?pose=x,y,yaw, web viewer at /)",
-        description="Load every scene bundle under --scenes once and serve GET/POST /render, /scenes, /healthz, "
-                    "/metrics and the web viewer at /. API docs at /docs. Listens on loopback by default; any "
-                    "other interface needs an API key (--api-key-file or PARKSIM_API_KEY; --api-key shows the key "
+        description="Load every scene bundle under --scenes once (refusing, with a warning, any that does not "
+                    "load, unless --strict; exit status 2 when none loads) and serve GET/POST /render, /scenes, "
+                    "/healthz, /metrics and the web viewer at /. API docs at /docs. Listens on loopback by default; "
+                    "any other interface needs an API key (--api-key-file or PARKSIM_API_KEY; --api-key shows the key "
                     "in `ps`), which clients send as the X-API-Key header. Only requests whose Host is a loopback "
                     "name or --host are answered, unless --host is 0.0.0.0 or ::. The port is bound before the "
                     "scenes load, so a busy port fails at once.")
     p.add_argument("--scenes", required=True, help="folder of bundle folders (or one bundle folder)")
+    p.add_argument("--strict", action="store_true",
+                   help="exit (status 2) on the first bundle that does not load; by default such a bundle is refused "
+                        "with a warning, listed in /scenes and /healthz, and the others are served")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on")
     p.add_argument("--port", type=tcp_port, default=8000, help="TCP port, 1 to 65535")
     key = p.add_mutually_exclusive_group()
@@ -77,12 +81,12 @@ def run(args: argparse.Namespace) -> int:
                                  reply_budget_bytes=_mib(args.reply_budget_mib))
     if args.ray:
         serve_ray(args.scenes, settings, args.host, args.port, args.replicas or 1, args.autoscale,
-                  args.replica_cpus or 1, args.address)
+                  args.replica_cpus or 1, args.address, strict=args.strict)
         return 0
     given = [flag for flag in ("address", "replicas", "autoscale", "replica_cpus") if getattr(args, flag) is not None]
     if given:
         raise ValueError(f"--{given[0].replace('_', '-')} only applies with --ray")
-    serve(args.scenes, settings, args.host, args.port)
+    serve(args.scenes, settings, args.host, args.port, strict=args.strict)
     return 0
 
 

@@ -35,13 +35,13 @@ from .settings import Settings
 __all__ = ["create_app"]
 
 
-def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path]) -> SceneRegistry:
-    """A registry from a scenes folder, a registry, or ``{id: bundle or bundle folder}``."""
+def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path], strict: bool) -> SceneRegistry:
+    """A registry from a scenes folder (``strict``: no bundle refused), a registry, or ``{id: bundle or folder}``."""
     if isinstance(scenes, SceneRegistry):
         return scenes
     if isinstance(scenes, Mapping):
         return SceneRegistry(LocalSim(b, scene_id) for scene_id, b in scenes.items())
-    return SceneRegistry.from_dir(scenes)
+    return SceneRegistry.from_dir(scenes, strict)
 
 
 def _validation_message(exc: RequestValidationError) -> str:
@@ -120,13 +120,16 @@ def _install_middleware(app: FastAPI, settings: Settings, metrics: Metrics) -> N
 
 
 def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path],
-               settings: Settings | None = None) -> FastAPI:
+               settings: Settings | None = None, strict: bool = False) -> FastAPI:
     """The simulator app serving ``scenes`` (loaded now, once) under ``settings`` (default limits).
 
     Args:
         scenes: a folder of scene bundles (one sub-folder each, its name the scene id), a ``SceneRegistry``,
             or ``{scene_id: Bundle or bundle folder}``.
         settings: limits, pool size, reply budgets and API key; ``Settings()`` when None.
+        strict: with a scenes folder, fail on the first bundle that does not load; by default such a bundle is
+            refused (logged as a warning, listed under ``refused`` in ``/scenes`` and ``/healthz``) and the
+            others are served.
 
     Returns:
         A FastAPI app: ``GET/POST /render`` (npz of uint8 (H, W, 3) views, optional float32 (H, W) depth,
@@ -134,10 +137,11 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
         at ``/`` and offline OpenAPI docs at ``/docs``; run it with uvicorn (``parksim serve`` does).
 
     Raises:
-        BundleError: no scene to serve, a missing scenes folder, or a bundle that does not load.
+        BundleError: no scene to serve (every bundle refused), a missing scenes folder, or, with ``strict`` or
+            given bundles, a bundle that does not load.
     """
     settings = settings or Settings()
-    registry = _registry(scenes)
+    registry = _registry(scenes, strict)
 
     app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__, docs_url=None, redoc_url=None,
                   description="Renders of reconstructed parking garages (four fisheye views and a BEV) at any ego "

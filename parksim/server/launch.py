@@ -77,8 +77,10 @@ def bind(host: str, port: int) -> list[socket.socket]:
 
 
 def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port: int = 8000,
-          log: Callable[[str], None] = _say) -> None:
-    """Serve every scene bundle under ``scenes`` from this process until Ctrl-C.
+          log: Callable[[str], None] = _say, strict: bool = False) -> None:
+    """Serve every scene bundle under ``scenes`` from this process until Ctrl-C; a bundle that does not load is
+    refused (a warning on the ``parksim.server.scenes`` logger, listed in ``/scenes`` and ``/healthz``) and the
+    others are served.
 
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
@@ -86,18 +88,23 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
         host: interface to listen on; other than loopback it needs ``settings.api_key``. Requests whose ``Host``
             is neither a loopback name nor ``host`` are refused (421), unless ``host`` is 0.0.0.0 or ::.
         port: TCP port.
-        log: receives the one line saying what is served where, once the scenes are loaded.
+        log: receives the one line saying what is served where (and which bundles were refused), once the scenes
+            are loaded.
+        strict: fail on the first bundle that does not load instead of refusing it.
 
     Raises:
         ValueError: a non-loopback ``host`` without an API key, or an unresolvable ``host``.
         OSError: the port is taken (before any scene loads).
-        parksim.bundle.BundleError: no loadable scene under ``scenes``.
+        parksim.bundle.BundleError: no loadable scene under ``scenes``, or with ``strict`` a bundle that does not
+            load.
     """
     settings = _guarded(host, settings)
     sockets = bind(host, port)
     try:
-        app = create_app(scenes, settings)
-        log(f"serving {', '.join(app.state.registry.ids)} on http://{host}:{port} (viewer at /, docs at /docs)")
+        app = create_app(scenes, settings, strict)
+        registry = app.state.registry
+        refused = f"; refused {', '.join(registry.refused)} (see /scenes)" if registry.refused else ""
+        log(f"serving {', '.join(registry.ids)} on http://{host}:{port} (viewer at /, docs at /docs){refused}")
         server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
         with contextlib.suppress(KeyboardInterrupt):   # Ctrl-C is the way to stop it, as with uvicorn.run
             server.run(sockets=sockets)
@@ -108,10 +115,11 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
 
 def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port: int = 8000,
               replicas: int = 1, autoscale: tuple[int, int] | None = None, replica_cpus: int = 1,
-              address: str | None = None, log: Callable[[str], None] = _say) -> None:
+              address: str | None = None, log: Callable[[str], None] = _say, strict: bool = False) -> None:
     """Serve the scenes from Ray Serve replicas until Ctrl-C or SIGTERM, then take the deployment (and a Ray this
     call started) down. Each replica loads the scenes itself, so ``scenes`` must be readable at the same path on
-    every node; ``settings``' limits hold per replica.
+    every node; ``settings``' limits hold per replica. Each replica refuses a bundle that does not load as
+    :func:`serve` does (the warning goes to Ray's session logs; ``/scenes`` and ``/healthz`` list it).
 
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
@@ -124,10 +132,12 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
         replica_cpus: CPUs each replica reserves and renders with.
         address: ``HEAD:PORT`` of a Ray cluster to join; None starts a local Ray on this machine's cores.
         log: receives the one line saying where it serves, once every replica has loaded the scenes.
+        strict: a replica fails to start on the first bundle that does not load instead of refusing it.
 
     Raises:
         ValueError: Ray Serve is not installed, the scenes folder is missing, the cluster cannot be reached or a
-            replica fails to start (one line each), or a non-loopback ``host`` without an API key.
+            replica fails to start (one line each; no loadable scene, or with ``strict`` a bad bundle), or a
+            non-loopback ``host`` without an API key.
         OSError: the port is taken (before Ray starts).
     """
     settings = _guarded(host, settings)
@@ -143,7 +153,7 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
     for sock in bind(host, port):   # a busy port fails before Ray starts; Serve's proxy binds it next
         sock.close()
     scaling = ray_serve.Scaling(replicas, autoscale, replica_cpus)
-    ray_serve.start(scenes, settings, scaling, host, port, address)
+    ray_serve.start(scenes, settings, scaling, host, port, address, strict)
     try:
         size = f"{autoscale[0]} to {autoscale[1]}" if autoscale else str(replicas)
         log(f"serving on http://{host}:{port} from {size} Ray Serve replica(s) of {replica_cpus} CPU(s) "

@@ -37,13 +37,14 @@ while the pool is full and the app itself answers 503 for renders, as the single
 
 @serve.ingress()
 class SimReplica:
-    """One Serve replica: the simulator app over the scenes folder ``scenes``, loaded here at replica start-up."""
+    """One Serve replica: the simulator app over the scenes folder ``scenes``, loaded here at replica start-up
+    (refusing bundles that do not load as ``create_app`` does, or failing on one when ``strict``)."""
 
-    def __init__(self, scenes: str, settings: Settings) -> None:
-        self.scenes, self.settings = scenes, settings
+    def __init__(self, scenes: str, settings: Settings, strict: bool = False) -> None:
+        self.scenes, self.settings, self.strict = scenes, settings, strict
 
     def __serve_build_asgi_app__(self) -> FastAPI:
-        app = create_app(self.scenes, self.settings)
+        app = create_app(self.scenes, self.settings, self.strict)
         app.add_middleware(PicklableBodies)
         return app
 
@@ -90,14 +91,14 @@ class Scaling:
         return out
 
 
-def application(scenes: str | Path, settings: Settings, scaling: Scaling) -> Application:
+def application(scenes: str | Path, settings: Settings, scaling: Scaling, strict: bool = False) -> Application:
     """The Serve application of ``SimReplica`` over the absolute path of ``scenes``."""
     deployment = serve.deployment(name="SimReplica")(SimReplica).options(**scaling.options(settings))
-    return deployment.bind(str(Path(scenes).resolve()), settings)
+    return deployment.bind(str(Path(scenes).resolve()), settings, strict)
 
 
 def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, port: int,
-          address: str | None = None) -> None:
+          address: str | None = None, strict: bool = False) -> None:
     """Start Ray on this machine's cores, or join the cluster at ``address``; start Serve's HTTP proxy on
     ``host:port`` and deploy. Returns once every replica has loaded the scenes; ``ValueError`` with one line when
     the cluster cannot be reached or a replica fails to start, with everything started here taken down again."""
@@ -117,7 +118,8 @@ def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, p
             raise ValueError(f"Ray Serve's HTTP proxy did not start ({type(e).__name__}); is the machine "
                              "overloaded? Ray's session logs say more") from None
         try:
-            serve.run(application(scenes, settings, scaling), name=APP_NAME, route_prefix="/", logging_config=QUIET)
+            serve.run(application(scenes, settings, scaling, strict), name=APP_NAME, route_prefix="/",
+                      logging_config=QUIET)
         except RuntimeError:
             raise ValueError(f"the Ray Serve replicas did not start: {_startup_error()}") from None
     except BaseException:

@@ -20,9 +20,11 @@ from .deps import BudgetDep, MetricsDep, PoolDep, RegistryDep, RendererDep, Sett
 from .jobs import RenderJob
 from .metrics import CONTENT_TYPE
 from .replies import TIMING_HEADERS
+from .scenes import SceneRegistry
 from .schemas import (
     ErrorMessage,
     Health,
+    RefusedScene,
     RenderBatchRequest,
     RenderQuery,
     SceneInfo,
@@ -69,12 +71,14 @@ router = APIRouter()
 protected = APIRouter(dependencies=[Depends(require_api_key)])
 
 
-@router.get("/healthz", response_model=Health, summary="liveness, loaded scenes, pool and reply budget state, limits")
+@router.get("/healthz", response_model=Health,
+            summary="liveness, loaded and refused scenes, pool and reply budget state, limits")
 def healthz(registry: RegistryDep, settings: SettingsDep, pool: PoolDep, budget: BudgetDep) -> Health:
     return Health(status="ok", scenes=registry.ids, pool=pool.stats(), replies=budget.stats(),
                   limits={name: getattr(settings, name) for name in ("min_scale", "max_scale", "max_batch",
                                                                      "pose_margin_m", "max_tilt_rad",
-                                                                     "max_reply_bytes")})
+                                                                     "max_reply_bytes")},
+                  refused=_refused(registry))
 
 
 @protected.get("/metrics", response_class=Response, summary="Prometheus metrics (text format 0.0.4)",
@@ -83,10 +87,15 @@ def metrics(m: MetricsDep) -> Response:
     return Response(m.text(), media_type=CONTENT_TYPE)
 
 
-@protected.get("/scenes", response_model=SceneList, summary="the loaded scenes", responses=_errors(401))
+@protected.get("/scenes", response_model=SceneList, summary="the loaded scenes and the refused bundles",
+               responses=_errors(401))
 def scenes(registry: RegistryDep) -> SceneList:
     return SceneList(scenes=[SceneSummary(id=s.id, gaussians=len(s.bundle.scene), cameras=s.cameras)
-                             for s in registry.sims.values()])
+                             for s in registry.sims.values()], refused=_refused(registry))
+
+
+def _refused(registry: SceneRegistry) -> list[RefusedScene]:
+    return [RefusedScene(id=scene_id, reason=reason) for scene_id, reason in registry.refused.items()]
 
 
 @protected.get("/scenes/{scene_id}", response_model=SceneInfo, summary="rig, BEV spec, bounds and slot map of a scene",

@@ -1,13 +1,16 @@
 """Scene registry: every bundle under the scenes folder loaded once at start-up and shared by all requests.
 
 Each scene is a ``parksim.sim.LocalSim``, which caches its per-scale precomputation (scaled rig,
-IPM grids and blend weights); renders reuse it. ``check_pose`` keeps poses inside the scene.
+IPM grids and blend weights); renders reuse it. ``check_pose`` keeps poses inside the scene. A bundle that does not
+load is refused (its reason kept for ``/scenes`` and ``/healthz`` and logged as a warning) while the others are
+served, unless the folder is loaded strictly.
 """
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from parksim.bundle import META, BundleError
@@ -19,29 +22,49 @@ from .settings import Settings
 
 __all__ = ["SceneRegistry", "UnknownScene", "check_pose"]
 
+log = logging.getLogger(__name__)
+
 
 class UnknownScene(LookupError):
     """A request names a scene that is not loaded; the message lists the loaded ones."""
 
 
 class SceneRegistry:
-    """Loaded scenes by id (bundle folder name), in sorted order; the first is the default."""
+    """Loaded scenes by id (bundle folder name), in sorted order; the first is the default. ``refused`` maps the id
+    of each bundle that did not load to the one-line reason, naming the bad file."""
 
-    def __init__(self, sims: Iterable[LocalSim]) -> None:
+    def __init__(self, sims: Iterable[LocalSim], refused: Mapping[str, str] | None = None) -> None:
         self.sims = {s.id: s for s in sorted(sims, key=lambda s: s.id)}
+        self.refused = dict(sorted((refused or {}).items()))
         if not self.sims:
-            raise BundleError("no scene to serve")
+            why = "; ".join(f"{scene_id}: {reason}" for scene_id, reason in self.refused.items())
+            raise BundleError(f"no scene to serve: every bundle was refused ({why})" if why else "no scene to serve")
 
     @classmethod
-    def from_dir(cls, scenes_dir: str | Path) -> SceneRegistry:
-        """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle)."""
+    def from_dir(cls, scenes_dir: str | Path, strict: bool = False) -> SceneRegistry:
+        """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle).
+
+        A bundle that fails to load is refused with its one-line error, logged as a warning, and the others are
+        served; with ``strict`` the first such error is raised instead. ``BundleError`` when none loads.
+        """
         root = Path(scenes_dir)
         if not root.is_dir():
             raise BundleError(f"scenes folder not found: {root}")
         dirs = [root] if (root / META).is_file() else sorted(d for d in root.iterdir() if (d / META).is_file())
         if not dirs:
             raise BundleError(f"{root}: no scene bundle (a folder with {META}) in it")
-        return cls(LocalSim.from_dir(d) for d in dirs)
+        sims: list[LocalSim] = []
+        refused: dict[str, str] = {}
+        for d in dirs:
+            try:
+                sims.append(LocalSim.from_dir(d))
+            except (ValueError, OSError) as e:   # BundleError, a bad field, an unreadable file: not a bug
+                if strict:
+                    raise
+                reason = " ".join(str(e).split()) or type(e).__name__
+                refused[d.name] = reason if str(d) in reason else f"{d}: {reason}"
+                log.warning("refused scene %r: %s", d.name, refused[d.name])
+        return cls(sims, refused)
 
     @property
     def ids(self) -> list[str]:

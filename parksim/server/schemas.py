@@ -9,7 +9,8 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
 __all__ = ["Pose", "parse_number", "parse_pose", "parse_cameras", "RenderQuery", "ViewQuery", "RenderBatchRequest",
-           "RenderMeta", "SceneSummary", "SceneList", "SceneInfo", "Health", "ErrorMessage", "POSE_HELP"]
+           "RenderMeta", "SceneSummary", "RefusedScene", "SceneList", "SceneInfo", "Health", "ErrorMessage",
+           "POSE_HELP"]
 
 POSE_HELP = ("ego pose T_world_vehicle as 'x,y,yaw' (metres, radians; z = roll = pitch = 0) or "
              "'x,y,z,roll,pitch,yaw'; yaw about world z, rotation Rz(yaw) Ry(pitch) Rx(roll)")
@@ -156,8 +157,19 @@ class SceneSummary(BaseModel):
     cameras: list[str]
 
 
+class RefusedScene(BaseModel):
+    """A bundle under the scenes folder that did not load, so is not served."""
+
+    id: str = Field(description="the bundle folder's name")
+    reason: str = Field(description="the one-line load error, naming the bad file")
+
+
+_REFUSED = "bundles under the scenes folder that did not load, so are not served (empty when all loaded)"
+
+
 class SceneList(BaseModel):
     scenes: list[SceneSummary]
+    refused: list[RefusedScene] = Field(default_factory=list, description=_REFUSED)
 
 
 class SceneInfo(BaseModel):
@@ -188,6 +200,7 @@ class Health(BaseModel):
     replies: dict[str, int] = Field(description="reply byte budget: budget_bytes, in_flight_bytes (reserved by "
                                                 "replies being rendered or sent), rejected (answered 503)")
     limits: dict[str, float]
+    refused: list[RefusedScene] = Field(default_factory=list, description=_REFUSED)
 
 
 class ErrorMessage(BaseModel):
