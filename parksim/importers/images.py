@@ -4,7 +4,12 @@ pinhole when its lens has radial-tangential (Brown-Conrady) distortion."""
 from __future__ import annotations
 
 import functools
+import os
 import re
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,7 +17,15 @@ import numpy as np
 
 from .recording import ImageSource, RecordingError
 
-__all__ = ["Distortion", "undistortion_maps", "image_source", "frame_number"]
+__all__ = ["Distortion", "undistortion_maps", "image_source", "image_defect", "frame_number", "TRUNCATED",
+           "FileImage"]
+
+TRUNCATED = "truncated image file"
+"""The drop reason of a JPEG without its end-of-image marker or a PNG without its IEND chunk."""
+
+_JPEG, _JPEG_END = b"\xff\xd8\xff", b"\xff\xd9"
+_PNG, _PNG_END = b"\x89PNG\r\n\x1a\n", b"\x00\x00\x00\x00IEND\xaeB`\x82"
+_TAIL = 4096
 
 
 def frame_number(name: str, where: str) -> int:
@@ -55,19 +68,84 @@ def undistortion_maps(lens: Distortion) -> tuple[np.ndarray, np.ndarray]:
     return (lens.fx * xd + lens.cx).astype(np.float32), (lens.fy * yd + lens.cy).astype(np.float32)
 
 
-def image_source(path: Path, lens: Distortion | None = None) -> ImageSource:
-    """Decode ``path`` as uint8 RGB when called (EXIF orientation ignored, as nerfstudio and COLMAP do),
-    undistorted to a pinhole when ``lens`` is given: bilinear, black where the source has no pixel."""
-    def read() -> np.ndarray:
+def image_defect(path: Path) -> str | None:
+    """Why the file at ``path`` cannot be imported whole, from its first and last bytes only (no decode), or None.
+
+    A JPEG must end with its end-of-image marker FFD9 and a PNG with its IEND chunk (after the zero padding some
+    writers add); one that does not was cut short (a JPEG decoder fills the missing rows grey and only warns).
+    Other formats, and a file that cannot be opened, are left to the decoder (whose error names the file).
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(_PNG))
+            end = f.seek(0, os.SEEK_END)
+            tail = b""
+            while end > 0 and not tail.rstrip(b"\0"):
+                start = max(0, end - _TAIL)
+                f.seek(start)
+                tail = f.read(end - start) + tail
+                end = start
+    except OSError:
+        return None
+    end_marker = _JPEG_END if head.startswith(_JPEG) else _PNG_END if head.startswith(_PNG) else None
+    if end_marker is None or tail.rstrip(b"\0").endswith(end_marker):
+        return None
+    return TRUNCATED
+
+
+@contextmanager
+def _decoder_messages() -> Iterator[list[str]]:
+    """Catch what C decoders (libjpeg, libpng, OpenCV) print on the process's stderr (file descriptor 2) inside the
+    block: the list holds its lines once the block ends, so a failure can say it in one line of its own."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as catch:
+        saved = os.dup(2)
+        os.dup2(catch.fileno(), 2)
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            catch.seek(0)
+            lines += [ln.strip() for ln in catch.read().decode(errors="replace").splitlines() if ln.strip()]
+
+
+@dataclass(frozen=True)
+class FileImage:
+    """An ``ImageSource`` read from a file: calling it decodes the file as uint8 RGB (EXIF orientation ignored, as
+    nerfstudio and COLMAP do), undistorted to a pinhole when ``lens`` is given (bilinear, black where the source
+    has no pixel). ``defect()`` is checked for every image before any is written; a frame with one is dropped."""
+
+    path: Path
+    lens: Distortion | None = None
+
+    def defect(self) -> str | None:
+        """The drop reason of this image (``image_defect``), or None when it is whole."""
+        return image_defect(self.path)
+
+    def __call__(self) -> np.ndarray:
         import cv2
 
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        level = cv2.utils.logging.getLogLevel()   # OpenCV's own warning repeats the path: the decoder's says why
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            with _decoder_messages() as said:
+                img = cv2.imread(str(self.path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if img is None:
-            raise RecordingError(f"{path}: cannot decode the image (missing, corrupt or unsupported)")
+            why = f" ({said[-1]})" if said else ""
+            raise RecordingError(f"{self.path}: cannot decode the image (missing, corrupt or unsupported){why}")
+        for line in said:   # a warning on an image that decoded (e.g. extraneous bytes): one line naming the file
+            print(f"{self.path}: {line}", file=sys.stderr)
         rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-        if lens is None:
+        if self.lens is None:
             return rgb
-        mx, my = undistortion_maps(lens)
+        mx, my = undistortion_maps(self.lens)
         return cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
-    return read
+
+def image_source(path: Path, lens: Distortion | None = None) -> ImageSource:
+    """The ``ImageSource`` of ``path`` (a ``FileImage``): decoded when called, undistorted when ``lens`` is given."""
+    return FileImage(path, lens)

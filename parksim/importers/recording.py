@@ -7,23 +7,34 @@ proper rotations, timestamps increasing, every image decoding to its camera's si
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
 if TYPE_CHECKING:   # importers are imported to build `parksim import --help`: no torch at import time
     from ..rig import Rig
 
-__all__ = ["ImageSource", "RecordingError", "Dropped", "Recording", "write_recording", "check_pose",
+__all__ = ["ImageSource", "CheckedSource", "RecordingError", "Dropped", "Recording", "write_recording", "check_pose",
            "REPORT_FILE", "ROTATION_TOLERANCE"]
 
 ImageSource = Callable[[], np.ndarray]
 """Returns one image as uint8 RGB ``[H, W, 3]``; called once, when the image is written."""
+
+
+@runtime_checkable
+class CheckedSource(Protocol):
+    """An ``ImageSource`` that can tell, cheaply and before anything is written, why its image is unusable (a file
+    cut short: ``parksim.importers.images.FileImage``); the frame is then dropped with that reason."""
+
+    def __call__(self) -> np.ndarray: ...
+
+    def defect(self) -> str | None: ...
 
 REPORT_FILE = "import_report.json"
 ROTATION_TOLERANCE = 1e-6
@@ -79,11 +90,37 @@ def check_pose(T: np.ndarray, what: str) -> None:
                              f"{ROTATION_TOLERANCE:g})")
 
 
+def _drop_defective(rec: Recording) -> Recording:
+    """``rec`` without the frames that have an image with a defect (``CheckedSource``), each dropped and counted
+    with its reason; the first camera at fault is named."""
+    why: dict[int, Dropped] = {}
+    for f in rec.frames:
+        for c in rec.rig.names:
+            source = rec.images.get((f, c))
+            reason = source.defect() if isinstance(source, CheckedSource) else None
+            if reason is not None:
+                why[f] = Dropped(reason, c, f)
+                break
+    if not why:
+        return rec
+    keep = [i for i, f in enumerate(rec.frames) if f not in why]
+    frames = [rec.frames[i] for i in keep]
+    return dataclasses.replace(
+        rec, frames=frames, timestamps=[rec.timestamps[i] for i in keep],
+        poses=None if rec.poses is None else np.asarray(rec.poses)[keep],
+        camera_poses=None if rec.camera_poses is None else [rec.camera_poses[i] for i in keep],
+        split=None if rec.split is None else ([f for f in rec.split[0] if f not in why],
+                                              [f for f in rec.split[1] if f not in why]),
+        dropped=[*rec.dropped, *why.values()])
+
+
 def _check(rec: Recording) -> None:
     """Everything checkable before a file is written: sizes agree, poses are rigid, time increases."""
     n = len(rec.frames)
     if n == 0:
-        raise RecordingError("no frame is left to import (see the dropped frames above)")
+        reasons = _reasons(rec.dropped)
+        raise RecordingError(f"no frame is left to import; {len(rec.dropped)} dropped: "
+                             + "; ".join(f"{count} {reason}" for reason, count in reasons.items()))
     if len(rec.timestamps) != n or len(set(rec.frames)) != n:
         raise RecordingError(f"{n} frames, {len(rec.timestamps)} timestamps, {len(set(rec.frames))} distinct ids")
     stamps = np.asarray(rec.timestamps, np.float64)
@@ -141,11 +178,17 @@ def _split(rec: Recording, test_every: int) -> tuple[list[int], list[int]]:
     return [f for f in rec.frames if f not in set(test)], test
 
 
+def _reasons(dropped: list[Dropped]) -> dict[str, int]:
+    """How many were dropped for each reason, in the order first seen."""
+    reasons: dict[str, int] = {}
+    for d in dropped:
+        reasons[d.reason] = reasons.get(d.reason, 0) + 1
+    return reasons
+
+
 def report_of(rec: Recording, importer: str, out: Path) -> dict[str, Any]:
     """The import report: frames per camera, dropped frames and why, time span, path length, importer notes."""
-    reasons: dict[str, int] = {}
-    for d in rec.dropped:
-        reasons[d.reason] = reasons.get(d.reason, 0) + 1
+    reasons = _reasons(rec.dropped)
     return {"importer": importer, "output": str(out), "frames": len(rec.frames),
             "images_per_camera": {c: len(rec.frames) for c in rec.rig.names},
             "dropped": len(rec.dropped), "dropped_by_reason": reasons,
@@ -159,7 +202,9 @@ def report_of(rec: Recording, importer: str, out: Path) -> dict[str, Any]:
 
 def write_recording(rec: Recording, out: str | Path, importer: str, test_every: int = 10,
                     overwrite: bool = False, progress: bool = True) -> dict[str, Any]:
-    """Check ``rec`` and write it as a dataset at ``out`` (all or nothing); returns the import report."""
+    """Check ``rec`` and write it as a dataset at ``out`` (all or nothing); returns the import report.
+
+    Frames with an image cut short (a ``CheckedSource`` with a defect) are dropped and counted first."""
     from tqdm import tqdm
 
     from ..data import DatasetWriter
@@ -167,6 +212,7 @@ def write_recording(rec: Recording, out: str | Path, importer: str, test_every: 
     from ..fileio import atomic_directory, write_json
 
     out = Path(out)
+    rec = _drop_defective(rec)
     _check(rec)
     report = report_of(rec, importer, out)
     train, test = _split(rec, test_every)

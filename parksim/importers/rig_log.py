@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from .base import CheckedOptions, Importer
+from .images import image_source
 from .recording import Dropped, ImageSource, Recording, RecordingError
 from .rig_log_calib import FORMATS, QUATERNION_TOLERANCE, CalibFormat, rotations, unit_quaternions
 
@@ -312,18 +313,6 @@ def file_time(path: Path, unit: str = "auto") -> tuple[float, str]:
     return _seconds(text, UNIT_TICKS[unit], str(path)), unit
 
 
-def _image_source(path: Path) -> ImageSource:
-    def read() -> np.ndarray:
-        import cv2
-
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-        if img is None:
-            raise RecordingError(f"{path}: cannot decode the image (corrupt or unsupported)")
-        return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-    return read
-
-
 def _image_folder(camera: str, folder: Path, unit: str, size: tuple[int, int]) -> tuple[list[Shot], set[str]]:
     """A camera's images in time order, each checked (from its header) to be ``size``; and the time units read."""
     from PIL import Image, UnidentifiedImageError
@@ -344,7 +333,7 @@ def _image_folder(camera: str, folder: Path, unit: str, size: tuple[int, int]) -
             raise RecordingError(f"{p}: image is {found[0]}x{found[1]} but camera {camera!r} is calibrated at "
                                  f"{size[0]}x{size[1]}")
         t, u = file_time(p, unit)
-        shots.append(Shot(t, _image_source(p), str(p)))
+        shots.append(Shot(t, image_source(p), str(p)))
         units.add(u)
     shots.sort(key=lambda s: s.time)
     for a, b in zip(shots, shots[1:]):
