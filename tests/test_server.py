@@ -141,7 +141,7 @@ def test_bad_paths_are_4xx(client, path, status, words):
     ({"poses": [{"x": "\u0661\u0662", "y": 0, "yaw": 0}]}, 422, "is not a number in decimal notation"),
     ({"poses": [[12, True, 0]]}, 422, "boolean"),
     (b'{"poses": [[NaN, 0, 0]]}', 422, "finite"),
-    (b"{not json", 422, "not valid JSON"),
+    (b"{not json", 400, "not valid JSON"),
     (b"x" * (2 << 20), 413, "Content-Length"),
 ])
 def test_bad_post_is_4xx(client, body, status, words):

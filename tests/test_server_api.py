@@ -54,7 +54,7 @@ def test_openapi_lists_only_the_errors_each_route_can_give(app):
         ("/scenes", "get"): {"401"},
         ("/scenes/{scene_id}", "get"): {"401", "404", "422"},
         ("/render", "get"): {"401", "404", "413", "422", "503"},
-        ("/render", "post"): {"401", "404", "411", "413", "422", "503"},
+        ("/render", "post"): {"400", "401", "404", "411", "413", "422", "503"},
         ("/render/{view}.{ext}", "get"): {"401", "404", "413", "422", "503"},
     }
 

@@ -1,13 +1,15 @@
 """``create_app``: the FastAPI app over a scenes folder (or given bundles), with error mapping and metrics.
 
 Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is allowed:
-422 bad request values, 404 unknown scene or route, 401 missing key, 400 a key in the query string,
+400 a body that is not parseable JSON (malformed, not UTF-8, nested too deeply, an integer too long) or a key
+in the query string, 422 bad request values (in a body that parsed), 404 unknown scene or route, 401 missing key,
 421 a ``Host`` the server does not answer to (``Settings.allowed_hosts``), 413 body or reply too large,
 503 (with Retry-After) when the render queue or the reply budget is full.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -44,13 +46,35 @@ def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | P
     return SceneRegistry.from_dir(scenes, strict)
 
 
+_BODY_PARSE_FAILED = "There was an error parsing the body"  # FastAPI's 400 when json.loads raises not a JSONDecodeError
+
+
+def _json_invalid(exc: RequestValidationError) -> str | None:
+    """The one-line reason when FastAPI's ``json.loads`` of the body failed (a syntax error), else None."""
+    for err in exc.errors():
+        if err.get("type") == "json_invalid":
+            return (f"the request body is not valid JSON: {err.get('ctx', {}).get('error', 'parse error')} "
+                    f"at character {err['loc'][-1]}")
+    return None
+
+
+def _unparsable(cause: BaseException | None) -> str:
+    """Why a body that is not a JSON syntax error still failed ``json.loads`` (FastAPI keeps it as ``__cause__``)."""
+    if isinstance(cause, RecursionError):
+        return "the request body is not usable JSON: its arrays/objects are nested too deeply for the parser"
+    if isinstance(cause, UnicodeDecodeError):
+        return (f"the request body is not valid UTF-8: byte 0x{cause.object[cause.start]:02x} at offset {cause.start} "
+                f"({cause.reason})")
+    if isinstance(cause, ValueError) and "integer string conversion" in str(cause):
+        return (f"the request body is not usable JSON: an integer has more than {sys.get_int_max_str_digits()} "
+                "digits")
+    return f"the request body could not be parsed as JSON: {cause!r}"
+
+
 def _validation_message(exc: RequestValidationError) -> str:
     """Pydantic's errors as one readable line: where, what is wrong."""
     parts = []
     for err in exc.errors():
-        if err.get("type") == "json_invalid":
-            parts.append(f"the request body is not valid JSON ({err.get('ctx', {}).get('error', 'parse error')})")
-            continue
         loc = ".".join(str(p) for p in err.get("loc", ()) if p not in ("query", "body", "path"))
         msg = str(err.get("msg", "invalid value")).removeprefix("Value error, ")
         parts.append(f"{loc or 'request'}: {msg}")
@@ -66,7 +90,8 @@ def _install_errors(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        return _error(422, _validation_message(exc))
+        syntax = _json_invalid(exc)
+        return _error(400, syntax) if syntax else _error(422, _validation_message(exc))
 
     @app.exception_handler(RequestError)
     async def _bad_request(_: Request, exc: RequestError) -> JSONResponse:
@@ -92,6 +117,8 @@ def _install_errors(app: FastAPI) -> None:
             detail = f"no route {request.url.path}; see /docs for the API"
         elif exc.status_code == 405:
             detail = f"method {request.method} is not allowed on {request.url.path}; see /docs"
+        elif exc.status_code == 400 and detail == _BODY_PARSE_FAILED:
+            detail = _unparsable(exc.__cause__)
         return _error(exc.status_code, str(detail), getattr(exc, "headers", None))
 
 

@@ -38,7 +38,8 @@ from .schemas import (
 __all__ = ["router", "VIEWER_DIR"]
 
 VIEWER_DIR = Path(__file__).parent / "viewer"
-_WHY = {401: "missing or wrong API key (only when the server was started with one)",
+_WHY = {400: "the body is not parseable JSON: malformed, not UTF-8, nested too deeply or an integer too long",
+        401: "missing or wrong API key (only when the server was started with one)",
         404: "unknown scene (GET /scenes lists the loaded ones)",
         411: "a POST body without a Content-Length header",
         413: "the reply would exceed the server's max_reply_bytes per request (the message gives both sizes)",
@@ -119,7 +120,7 @@ async def render_get(q: Annotated[RenderQuery, Query()], registry: RegistryDep, 
 @protected.post("/render", response_class=Response, summary="render the same views at a batch of poses in one "
                 "request (npz, arrays stacked per pose)",
                 responses={**_reply(_NPZ_HELP, "application/x-npz"),
-                           **_errors(401, 404, 411, 413, 422, 503, too_large=_BODY_TOO_LARGE)})
+                           **_errors(400, 401, 404, 411, 413, 422, 503, too_large=_BODY_TOO_LARGE)})
 async def render_post(body: RenderBatchRequest, registry: RegistryDep, settings: SettingsDep,
                       renderer: RendererDep) -> Response:
     return await renderer.respond(RenderJob.build(registry, settings, body.scene, body.poses, body.cameras, body.bev,
