@@ -29,6 +29,9 @@ def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool)
         if (out_dir / CONFIG_FILE).exists() or checkpoint_path(out_dir).exists():
             raise ValueError(f"{out_dir} already holds a run; pass --resume to continue it or choose another folder")
         return load_config(config_path) if config_path is not None else TrainConfig()
+    if not (out_dir / CONFIG_FILE).is_file():
+        raise ValueError(f"{out_dir / CONFIG_FILE} is missing: the earlier run never wrote its config (it stopped "
+                         "before training began), so there is nothing to resume; run again without --resume")
     stored = load_config(out_dir / CONFIG_FILE)
     if config_path is not None and load_config(config_path) != stored:
         raise ValueError(f"--config {config_path} differs from the config the run in {out_dir} started with")
@@ -76,7 +79,8 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
 
     Raises:
         ValueError: ``resume`` with ``start_from``; a fresh run into a folder that holds one; a resumed run given
-            another config; ``start_from`` without a slot-aware phase. ``DatasetError`` and ``ConfigError`` (both
+            another config; a resumed run whose folder has no config (its run never wrote one); ``start_from``
+            without a slot-aware phase. ``DatasetError`` and ``ConfigError`` (both
             ValueErrors) for a broken dataset or config.
     """
     out_dir = Path(out_dir)
