@@ -25,10 +25,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .base import CheckedOptions, Importer
+from .base import Importer
 from .nerfstudio import (
     DISTORTION,
     FISHEYE,
+    NerfstudioOptions,
     image_size,
     json_number,
     load_json,
@@ -51,13 +52,10 @@ IGNORED = ("sharpness", "sharpness_discard_threshold", "n_frames", "depth_path",
 
 
 @dataclass(frozen=True)
-class InstantNgpOptions(CheckedOptions):
-    """Options of ``parksim import instant-ngp``."""
+class InstantNgpOptions(NerfstudioOptions):
+    """Options of ``parksim import instant-ngp``: nerfstudio's (instant-ngp's frames never have a 'time', so ``fps``
+    always gives the timestamps) and the lens' field of view, which instant-ngp's files do not state."""
 
-    transforms: Path = field(metadata={"help": "transforms.json, or the folder holding it", "positional": True})
-    fps: float = field(default=10.0, metadata={
-        "help": "frame rate giving timestamps (frame number / fps; instant-ngp's frames have no time)", "low": 0,
-        "open_low": True})
     max_fov: float | None = field(default=None, metadata={
         "help": "field of view of the lens (instant-ngp's files do not state it; default: 190 with is_fisheye, "
                 "else 170)", "metavar": "DEG", "low": 0, "open_low": True, "high": 360})
