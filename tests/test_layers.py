@@ -24,7 +24,7 @@ import parksim
 
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("", "fileio", "checked_options", "plugins", "imageio", "geometry", "kernel_cache", "omp_env", "frames",
-              "vehicle", "visibility", "assets")),
+              "vehicle", "visibility", "assets", "device")),
     ("model", ("camera", "rig", "gaussians", "data", "calib", "bundle")),
     ("render", ("render", "ipm", "_ipm_kernels", "sh_rotation", "ply_3dgs")),
     ("sources", ("synth", "importers")),

@@ -10,6 +10,10 @@ kind of loop) and applies the chain rule in reverse, so nothing per sigma point 
 
 Arrays in and out keep the caller's dtype (float32 in the renderer); arithmetic inside is float64, which
 keeps float32 outputs within rounding of exact.
+
+The per-Gaussian helpers (``_project``, ``_sigma_points``, ``_moments``, ``_ut_blend``, ``_clamped``, the backward
+steps) are also compiled for the GPU by numba-cuda (``_device_bodies``, ``_cuda_kernels``): they use only what that
+target has (``math.isfinite``, not ``np.isfinite``; no allocation; scratch arrays passed in).
 """
 
 from __future__ import annotations
@@ -101,7 +105,7 @@ def _direction(x: float, y: float, z: float, n2: float) -> tuple[float, float, f
     ``camera.base._pow2_normalised``; NaN for a point with an infinite or NaN coordinate (no direction to
     trust), which the footprint's NaN guard then drops. Selects only: it vectorises.
     """
-    finite = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    finite = math.isfinite(x) & math.isfinite(y) & math.isfinite(z)
     c = 2.0 ** -600 if n2 > 2.0 ** 600 else (2.0 ** 600 if n2 < 2.0 ** -600 else 1.0)
     c = c if finite else math.nan
     return x * c, y * c, z * c, c
@@ -514,7 +518,7 @@ def _clamped(mean_u: float, mean_v: float, a: float, b: float, c: float, x: floa
 
     ``(a, b, c)`` is the clamped 2D covariance, ``valid`` whether it is finite and its box overlaps the image.
     """
-    finite = np.isfinite(mean_u) & np.isfinite(mean_v) & np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
+    finite = math.isfinite(mean_u) & math.isfinite(mean_v) & math.isfinite(a) & math.isfinite(b) & math.isfinite(c)
     mean_u, mean_v = (mean_u, mean_v) if finite else (0.0, 0.0)
     a, b, c = (a, b, c) if finite else (0.0, 0.0, 0.0)
     blur = opts[BLUR]

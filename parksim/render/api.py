@@ -24,15 +24,22 @@ from ..gaussians import GaussianScene
 from ..geometry import as_pose, invert_transform
 from ..ipm import IPM
 from ..rig import Rig, RigCamera
+from .project_device import device_supported, project_views_device
 from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
 from .rasterize import rasterize, resolve_backend
 from .rasterize._kernels import finish_image
 from .rasterize.cpu import Image, composite_many
+from .rasterize.gsplat_backend import rasterize_gsplat_views
 from .scratch import thread_scratch
 from .view_colors import view_colors
 
-__all__ = ["render", "RenderResult", "bev_ipm"]
+__all__ = ["render", "RenderResult", "bev_ipm", "PROJECTORS"]
+
+PROJECTORS = ("auto", "device")
+"""``render``'s projection choices: "auto" (the device kernels for CUDA scenes; on the CPU the fused inference kernel,
+or the autograd path when a gradient is needed) or "device" (the device kernels on any device: on the CPU their
+CPU target, how the GPU path is tested without a GPU)."""
 
 _VIEW_CACHE_SIZE = 8
 _MIN_ALPHA_FOR_DEPTH = 1e-4
@@ -141,6 +148,55 @@ def _fast_path(scene: GaussianScene, pose: Tensor | Sequence[float], cameras: Se
             and scene.sh.dtype == scene.means.dtype)
 
 
+def _device_path(scene: GaussianScene, cams: Sequence[RigCamera], method: str, projector: str) -> bool:
+    """Whether the device kernels project this render: asked for, or "auto" on a CUDA scene (UT, built-in lenses).
+
+    Returns:
+        True to take ``_device_views``.
+
+    Raises:
+        ValueError: "device" asked for with EWA or a lens the kernels do not serve.
+    """
+    if projector == "auto" and scene.means.device.type != "cuda":
+        return False
+    served = method == "ut" and all(device_supported(cam.model) for cam in cams)
+    if projector == "device" and not served:
+        kinds = sorted({type(cam.model).__name__ for cam in cams if not device_supported(cam.model)})
+        raise ValueError(f"render: projector='device' needs method='ut' (got {method!r}) and built-in lenses "
+                         f"(not {kinds})")
+    return served
+
+
+def _device_views(scene: GaussianScene, cams: Sequence[RigCamera], T_world_cameras: Sequence[Tensor],
+                  cfgs: Sequence[FusedUTConfig], lenses: Sequence[Tensor], background: Tensor, backend: str
+                  ) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """Device path: every camera projected and coloured in one kernel launch, then composited (differentiable).
+
+    On CUDA with gsplat and cameras of one size, all views go through one gsplat call on dense rows (no host
+    synchronisation); otherwise each view's drawn rows go to ``rasterize`` with ``backend``.
+
+    Returns:
+        Per camera, in ``cams``' order, ``(image [H, W, 3], alpha [H, W], depth [H, W])`` in the scene's dtype.
+    """
+    proj = project_views_device(scene.means, scene.quats, scene.log_scales, scene.sh, scene.sh_degree,
+                                torch.stack(list(T_world_cameras)), [cam.model for cam in cams], cfgs)
+    opacities = torch.sigmoid(scene.opacity_logits)[None] * proj.drawn
+    sizes = {(cam.model.width, cam.model.height) for cam in cams}
+    if resolve_backend(backend, scene.means.device) == "gsplat" and len(sizes) == 1:
+        width, height = sizes.pop()
+        rgb, alpha, depth = rasterize_gsplat_views(proj.means2d, proj.conics, proj.colors, opacities, proj.depths,
+                                                   width, height, bg=background)
+        planes = [(rgb[v], alpha[v], depth[v]) for v in range(len(cams))]
+    else:
+        planes = []
+        for v, cam in enumerate(cams):
+            rows = proj.drawn[v].nonzero().squeeze(1)
+            planes.append(rasterize(proj.means2d[v, rows], proj.conics[v, rows], proj.colors[v, rows],
+                                    opacities[v, rows], proj.depths[v, rows], cam.model.width, cam.model.height,
+                                    backend=backend, bg=background))
+    return [_finish(*plane, lens, background) for plane, lens in zip(planes, lenses)]
+
+
 def _finish(image: Tensor, alpha: Tensor, depth_sum: Tensor, lens: Tensor, background: Tensor
             ) -> tuple[Tensor, Tensor, Tensor]:
     """A camera's ``(image, alpha, depth)``: background outside its lens circle, depth normalised by alpha."""
@@ -195,11 +251,13 @@ def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor,
 
 def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
            bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
-           method: str = "ut", ut_params: UTParams | None = None, cull: bool = True) -> RenderResult:
+           method: str = "ut", ut_params: UTParams | None = None, cull: bool = True, projector: str = "auto"
+           ) -> RenderResult:
     """Render ``cameras`` of the rig with the vehicle at ``pose``, and optionally the BEV.
 
-    Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend; when no
-    gradient is needed (``torch.no_grad()`` or plain tensors) all cameras are projected in one kernel pass.
+    Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend. On a CUDA scene
+    every camera is projected in one launch of the device kernels and composited by gsplat; on the CPU, when no
+    gradient is needed (``torch.no_grad()`` or plain tensors), all cameras are projected in one fused kernel pass.
 
     Args:
         scene: N Gaussians in the world frame (means ``(N, 3)``, quats ``(N, 4)``, log-scales ``(N, 3)``,
@@ -215,6 +273,7 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         method: 2D footprints by the unscented transform ("ut") or first-order EWA ("ewa").
         ut_params: unscented-transform parameters (default ``UTParams()``).
         cull: False projects every Gaussian into every camera (only to measure what culling saves).
+        projector: one of ``PROJECTORS``: "auto", or "device" to run the device kernels on any device.
 
     Returns:
         ``RenderResult``: per camera name an image ``(H, W, 3)`` in [0, 1], alpha ``(H, W)`` and depth
@@ -223,7 +282,8 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
 
     Raises:
         KeyError: a camera name the rig does not have.
-        ValueError: ``scale`` not positive, or a bad ``backend`` / ``method``.
+        ValueError: ``scale`` not positive, a bad ``backend`` / ``method`` / ``projector``, or "device" asked of
+            a render it cannot serve (EWA, OCam lenses).
     """
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]
@@ -231,6 +291,8 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         raise KeyError(f"render: unknown camera(s) {unknown}; the rig has {rig.names}")
     if not scale > 0:
         raise ValueError(f"render: scale must be positive, got {scale}")
+    if projector not in PROJECTORS:
+        raise ValueError(f"render: projector must be one of {PROJECTORS}, got {projector!r}")
     view = _rig_view(rig, float(scale), names)
     dtype, device = scene.means.dtype, scene.means.device
     T_world_vehicle = as_pose(pose).to(device)   # rig, lens masks and background follow the scene's device
@@ -238,7 +300,11 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     cams = [view.rig.cameras[name] for name in names]
     T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams]
     lenses = [view.lens_mask(name, device) for name in names]
-    if _fast_path(scene, pose, cams, method, backend):
+    if _device_path(scene, cams, method, projector):
+        params = ut_params or UTParams()
+        cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
+        views = _device_views(scene, cams, T_world_cameras, cfgs, lenses, background, backend)
+    elif _fast_path(scene, pose, cams, method, backend):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
         views = _composite_views(scene, cams, T_world_cameras, cfgs, lenses, background)
