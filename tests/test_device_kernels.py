@@ -233,3 +233,23 @@ def test_render_device_projector_refuses_what_it_cannot_serve():
         render(ground_scene(), tiny_rig(), (0.0, 0.0, 0.0), method="ewa", projector="device")
     with pytest.raises(ValueError, match="projector must be one of"):
         render(ground_scene(), tiny_rig(), (0.0, 0.0, 0.0), projector="gpu")
+
+
+@pytest.mark.parametrize("projector", ["auto", "device"])
+def test_render_batch_equals_render_at_each_pose(projector):
+    """B poses in one call (one projection pass over B x C views) give what render gives at each pose."""
+    from test_render_api import ground_scene, tiny_rig
+
+    from parksim.render import render, render_batch
+
+    rig, scene_ = tiny_rig(48, 32), ground_scene(30)
+    poses = [(0.0, 0.0, 0.0), (0.5, -0.3, 0.4), (-1.0, 0.2, 3.0)]
+    batch = render_batch(scene_, rig, poses, bev=True, projector=projector)
+    assert len(batch) == len(poses)
+    for pose, got in zip(poses, batch):
+        want = render(scene_, rig, pose, bev=True, projector=projector)
+        for name in rig.names:
+            assert torch.equal(got.images[name], want.images[name])
+            assert torch.equal(got.depth[name], want.depth[name])
+        assert torch.equal(got.bev, want.bev)
+    assert not torch.equal(batch[0].images["front"], batch[1].images["front"])

@@ -34,7 +34,7 @@ from .rasterize.gsplat_backend import rasterize_gsplat_views
 from .scratch import thread_scratch
 from .view_colors import view_colors
 
-__all__ = ["render", "RenderResult", "bev_ipm", "PROJECTORS"]
+__all__ = ["render", "render_batch", "RenderResult", "bev_ipm", "PROJECTORS"]
 
 PROJECTORS = ("auto", "device")
 """``render``'s projection choices: "auto" (the device kernels for CUDA scenes; on the CPU the fused inference kernel,
@@ -285,6 +285,40 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         ValueError: ``scale`` not positive, a bad ``backend`` / ``method`` / ``projector``, or "device" asked of
             a render it cannot serve (EWA, OCam lenses).
     """
+    return render_batch(scene, rig, [pose], cameras, bev, scale, backend, bg, method, ut_params, cull, projector)[0]
+
+
+def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequence[float]],
+                 cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 1.0, backend: str = "auto",
+                 bg: Sequence[float] = (0.0, 0.0, 0.0), method: str = "ut", ut_params: UTParams | None = None,
+                 cull: bool = True, projector: str = "auto") -> list[RenderResult]:
+    """``render`` at B poses at once: B x C views projected in one pass and composited together.
+
+    On a CUDA scene the B x C views take one launch of the device kernels and one gsplat call, and the B BEVs one
+    batched IPM; on the CPU without gradients the fused kernel projects all views in one pass over the scene and
+    the compositor shares its threads among them. Each result equals ``render`` at that pose.
+
+    Args:
+        scene: as ``render``.
+        rig: as ``render``.
+        poses: B poses, each in a form ``render`` takes.
+        cameras: as ``render``.
+        bev: as ``render``.
+        scale: as ``render``.
+        backend: as ``render``.
+        bg: as ``render``.
+        method: as ``render``.
+        ut_params: as ``render``.
+        cull: as ``render``.
+        projector: as ``render``.
+
+    Returns:
+        B ``RenderResult``s, in ``poses``' order.
+
+    Raises:
+        KeyError: a camera name the rig does not have.
+        ValueError: as ``render``, or no pose.
+    """
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]
     if unknown:
@@ -293,18 +327,22 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         raise ValueError(f"render: scale must be positive, got {scale}")
     if projector not in PROJECTORS:
         raise ValueError(f"render: projector must be one of {PROJECTORS}, got {projector!r}")
+    if not len(poses):
+        raise ValueError("render_batch: no pose")
     view = _rig_view(rig, float(scale), names)
     dtype, device = scene.means.dtype, scene.means.device
-    T_world_vehicle = as_pose(pose).to(device)   # rig, lens masks and background follow the scene's device
     background = torch.as_tensor(bg, dtype=dtype, device=device)
-    cams = [view.rig.cameras[name] for name in names]
-    T_world_cameras = [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams]
-    lenses = [view.lens_mask(name, device) for name in names]
+    cams = [view.rig.cameras[name] for name in names] * len(poses)
+    T_world_cameras = []
+    for pose in poses:
+        T_world_vehicle = as_pose(pose).to(device)   # rig, lens masks and background follow the scene's device
+        T_world_cameras += [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams[:len(names)]]
+    lenses = [view.lens_mask(name, device) for name in names] * len(poses)
     if _device_path(scene, cams, method, projector):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
         views = _device_views(scene, cams, T_world_cameras, cfgs, lenses, background, backend)
-    elif _fast_path(scene, pose, cams, method, backend):
+    elif all(_fast_path(scene, pose, cams, method, backend) for pose in poses):
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
         views = _composite_views(scene, cams, T_world_cameras, cfgs, lenses, background)
@@ -312,8 +350,17 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         opacity = torch.sigmoid(scene.opacity_logits)
         views = [_finish(*_render_camera(scene, cam, T, opacity, background, backend, method, ut_params, cull),
                          lens, background) for cam, T, lens in zip(cams, T_world_cameras, lenses)]
-    images, alphas, depths = ({name: v[i] for name, v in zip(names, views)} for i in range(3))
-    bev_image = None
-    if bev:
-        bev_image = bev_ipm(rig, scale, names)(images)
-    return RenderResult(images, alphas, depths, bev_image)
+    results = []
+    for b in range(len(poses)):
+        mine = views[b * len(names):(b + 1) * len(names)]
+        images, alphas, depths = ({name: v[i] for name, v in zip(names, mine)} for i in range(3))
+        results.append(RenderResult(images, alphas, depths))
+    if bev:   # on the GPU one batched IPM; on the CPU each pose's own (the gather kernel takes single images)
+        ipm = bev_ipm(rig, scale, names)
+        if device.type == "cuda" and len(results) > 1:
+            bevs = list(ipm({name: torch.stack([r.images[name] for r in results]) for name in names}))
+        else:
+            bevs = [ipm(r.images) for r in results]
+        for r, image in zip(results, bevs):
+            r.bev = image
+    return results
