@@ -253,3 +253,56 @@ def test_render_batch_equals_render_at_each_pose(projector):
             assert torch.equal(got.depth[name], want.depth[name])
         assert torch.equal(got.bev, want.bev)
     assert not torch.equal(batch[0].images["front"], batch[1].images["front"])
+
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (benchmarks/gpu_check.sh)")
+
+
+@needs_cuda
+@pytest.mark.parametrize("name", ["opencv", "radial", "pinhole"])
+def test_cuda_kernels_equal_their_cpu_target(name):
+    """On a GPU: the numba-cuda build gives the CPU target's values and gradients (float32 in and out, float64
+    inside; only the GPU's fused multiply-adds and libdevice's transcendentals round differently)."""
+    cam, T = cameras()[name], views()
+    data = [t.to(torch.float32) for t in scene(20_000, seed=16)]
+    out = {}
+    for device in ("cpu", "cuda"):
+        leaves = [t.to(device).requires_grad_() for t in data]
+        T_leaf = T.to(device).requires_grad_()
+        got = project_views_device(*leaves, SH_DEGREE, T_leaf, [cam] * len(T), configs(cam, len(T)))
+        w = torch.Generator().manual_seed(17)
+        loss = sum((o * torch.randn(o.shape, generator=w).to(device)).sum() for o in got[:4])
+        out[device] = ([t.detach().cpu() for t in got], [g.cpu() for g in torch.autograd.grad(loss, [*leaves, T_leaf])])
+    (cpu, g_cpu), (gpu, g_gpu) = out["cpu"], out["cuda"]
+    drawn = cpu[4] & gpu[4]
+    assert (cpu[4] ^ gpu[4]).sum() <= max(2, int(drawn.sum()) // 1000)   # footprints at the image border
+    for label, a, b in zip(("means2d", "conics", "colors", "depths"), cpu[:4], gpu[:4]):
+        assert ((a[drawn] - b[drawn]).abs() <= f32_tol(a[drawn], ulps=8, dim=-1 if a.dim() == 3 else None)).all(), \
+            label
+    for label, a, b in zip(("means", "quats", "log_scales", "sh", "pose"), g_cpu, g_gpu):
+        a, b = a.double().flatten(1), b.double().flatten(1)
+        err = (a - b).norm(dim=-1) / a.norm(dim=-1).clamp_min(1e-6 * a.norm(dim=-1).max())
+        assert torch.quantile(err, 0.999) <= 1e-3, label
+
+
+@needs_cuda
+def test_render_on_cuda_uses_the_device_kernels_and_matches_cpu():
+    """render() of a CUDA scene (device kernels + gsplat) against the CPU path: >= 45 dB and 99.9 % of pixels within
+    1/255 per view (the tolerance of `parksim bench gpu`), the BEV too; render_batch on CUDA equals render."""
+    pytest.importorskip("gsplat")
+    from test_render_api import ground_scene, tiny_rig
+
+    from parksim.render import render, render_batch
+
+    rig, pose = tiny_rig(64, 48), (0.3, -0.2, 0.1)
+    cpu_scene, gpu_scene = ground_scene(40, seed=3), ground_scene(40, seed=3).to(device="cuda")
+    with torch.no_grad():
+        cpu = render(cpu_scene, rig, pose, bev=True)
+        gpu = render(gpu_scene, rig, pose, bev=True)
+        batch = render_batch(gpu_scene, rig, [pose, (0.0, 0.0, 0.0)], bev=True)
+    for want, got in [(cpu.images[n], gpu.images[n]) for n in rig.names] + [(cpu.bev, gpu.bev)]:
+        diff = (got.cpu().double() - want.double()).abs()
+        assert -10 * torch.log10(diff.pow(2).mean().clamp_min(1e-20)) >= 45.0
+        assert (diff <= 1 / 255).all(-1).float().mean() >= 0.999
+    for name in rig.names:
+        assert (batch[0].images[name] - gpu.images[name]).abs().max() <= 1e-6
