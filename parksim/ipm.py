@@ -127,6 +127,7 @@ class IPM:
             self._taps[n] = (rows, grid.reshape(1, 1, -1, 2)[:, :, rows].to(dtype), self.weights[n].flatten()[rows])
         self._back: dict[str, tuple[Tensor, Tensor]] = {}
         self._gather_taps: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._device_taps: dict[tuple[str, str, torch.dtype], tuple[Tensor, Tensor, Tensor]] = {}
 
     @staticmethod
     def _weight(model, p_cam: Tensor, uv: Tensor, valid: Tensor, edge_px: float, falloff: float) -> Tensor:
@@ -175,11 +176,22 @@ class IPM:
         first, batched, squeeze_c = planes[self.cameras[0]]   # the images share one layout
         out = first.new_zeros(first.shape[0], first.shape[1], self.spec.height * self.spec.width)
         for name, (x, _, _) in planes.items():
-            rows, grid, weight = self._taps[name]
-            grid = grid.to(x).expand(x.shape[0], -1, -1, -1)   # taps live on the CPU; images may not
+            rows, grid, weight = self._taps_like(name, x)
+            grid = grid.expand(x.shape[0], -1, -1, -1)
             sampled = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
-            out = out.index_add(2, rows.to(x.device), sampled * weight.to(x))
+            out = out.index_add(2, rows, sampled * weight)
         return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
+
+    def _taps_like(self, name: str, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Camera ``name``'s taps (rows, grid, weights) on ``x``'s device and dtype: the CPU ones converted on each
+        call as before, a GPU's copied there once (a render on the GPU then copies nothing per call)."""
+        rows, grid, weight = self._taps[name]
+        if x.device.type == "cpu":
+            return rows, grid.to(x), weight.to(x)
+        key = (name, str(x.device), x.dtype)
+        if key not in self._device_taps:
+            self._device_taps[key] = (rows.to(x.device), grid.to(x), weight.to(x))
+        return self._device_taps[key]
 
     def _gather_applies(self, images: Mapping[str, Tensor]) -> bool:
         """Whether ``_gather`` serves this call: no gradient needed, each image one float32 HxWxC CPU tensor."""
