@@ -306,3 +306,42 @@ def test_render_on_cuda_uses_the_device_kernels_and_matches_cpu():
         assert (diff <= 1 / 255).all(-1).float().mean() >= 0.999
     for name in rig.names:
         assert (batch[0].images[name] - gpu.images[name]).abs().max() <= 1e-6
+
+
+def test_gpu_memory_bound_and_refusal_through_the_server():
+    """A render bounded past the GPU's memory is refused before it starts: 413 when it can never fit, 503 with
+    Retry-After when not now; the bound grows with views, Gaussians and pixels."""
+    from fastapi import FastAPI
+    from fastapi.testclient import TestClient
+
+    from parksim.render.device_memory import (
+        BYTES_PER_VIEW_GAUSSIAN,
+        BYTES_PER_VIEW_PIXEL,
+        check_device_memory,
+        memory_verdict,
+        render_bytes,
+    )
+    from parksim.server.app import _install_errors
+
+    assert render_bytes(200_000, 4, 640 * 480) == 4 * (200_000 * BYTES_PER_VIEW_GAUSSIAN
+                                                       + 640 * 480 * BYTES_PER_VIEW_PIXEL)
+    assert render_bytes(200_000, 8, 640 * 480) == 2 * render_bytes(200_000, 4, 640 * 480)
+    check_device_memory(torch.device("cpu"), 10**18)   # the CPU path is never refused here
+    app = FastAPI()
+    _install_errors(app)
+
+    gib, card = 2**30, "NVIDIA H100 80GB HBM3"
+    needed = render_bytes(1_000_000, 64 * 4, 320 * 240)   # 64 poses x 4 cameras of a 1e6 scene: 63 GiB
+    assert memory_verdict(needed, available=79 * gib, total=80 * gib, card=card) is None
+    assert memory_verdict(needed, available=20 * gib, total=80 * gib, card=card).never is False
+    assert memory_verdict(needed, available=20 * gib, total=24 * gib, card=card).never is True
+
+    @app.get("/render/{gib_total}")
+    def refused(gib_total: int) -> None:
+        raise memory_verdict(needed, available=20 * gib, total=gib_total * gib, card=card)
+
+    client = TestClient(app)
+    r = client.get("/render/24")
+    assert r.status_code == 413 and f"{card} has 24.0 GiB" in r.json()["detail"]
+    r = client.get("/render/80")
+    assert r.status_code == 503 and r.headers["retry-after"] == "1" and "20.0 GiB is free now" in r.json()["detail"]

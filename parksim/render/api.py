@@ -24,6 +24,7 @@ from ..gaussians import GaussianScene
 from ..geometry import as_pose, invert_transform
 from ..ipm import IPM
 from ..rig import Rig, RigCamera
+from .device_memory import check_device_memory, render_bytes
 from .project_device import device_supported, project_views_device
 from .project_fast import FusedUTConfig, fused_supported, project_views_fused
 from .projection import FAR_M, NEAR_M, UTParams, fused_config, project_gaussians
@@ -284,6 +285,7 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         KeyError: a camera name the rig does not have.
         ValueError: ``scale`` not positive, a bad ``backend`` / ``method`` / ``projector``, or "device" asked of
             a render it cannot serve (EWA, OCam lenses).
+        DeviceMemoryError: on a GPU, the render would not fit its memory (``parksim.render.device_memory``).
     """
     return render_batch(scene, rig, [pose], cameras, bev, scale, backend, bg, method, ut_params, cull, projector)[0]
 
@@ -318,6 +320,7 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
     Raises:
         KeyError: a camera name the rig does not have.
         ValueError: as ``render``, or no pose.
+        DeviceMemoryError: on a GPU, the render would not fit its memory (``parksim.render.device_memory``).
     """
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]
@@ -339,6 +342,8 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
         T_world_cameras += [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams[:len(names)]]
     lenses = [view.lens_mask(name, device) for name in names] * len(poses)
     if _device_path(scene, cams, method, projector):
+        check_device_memory(device, render_bytes(len(scene), len(cams),
+                                                 max(c.model.width * c.model.height for c in cams)))
         params = ut_params or UTParams()
         cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
         views = _device_views(scene, cams, T_world_cameras, cfgs, lenses, background, backend)
