@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import importlib.util
 import re
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:   # torch is imported where it is used, so the commands' parsers can take DEVICE_HELP cheaply
+    import torch
 
 __all__ = ["DeviceError", "DEVICE_HELP", "resolve_device", "describe_device", "cuda_extra_missing"]
 
@@ -49,6 +51,8 @@ def resolve_device(spec: str | torch.device = "auto") -> torch.device:
         DeviceError: a malformed name, ``cuda`` without a CUDA device or without the CUDA extra, or an index past
             the devices torch sees.
     """
+    import torch
+
     text = str(spec).strip().lower()
     match = _SPEC.match(text)
     if match is None:
@@ -82,6 +86,8 @@ def describe_device(device: torch.device) -> str:
     Returns:
         The device and, for CUDA, the card's name.
     """
+    import torch
+
     if device.type != "cuda":
         return str(device)
     index = device.index if device.index is not None else torch.cuda.current_device()

@@ -127,7 +127,8 @@ class ParkingEnv(gym.Env):
                  api_key: str | None = None, sim: LocalSim | RemoteSim | None = None,
                  cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 0.25,
                  privileged: bool = False, pos_tol: float = 0.35, yaw_tol: float = 0.15,
-                 vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None) -> None:
+                 vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None,
+                 device: str | None = None) -> None:
         """Open the frame source and build the spaces (docs/env.md has the full contract).
 
         Args:
@@ -144,10 +145,13 @@ class ParkingEnv(gym.Env):
             yaw_tol: parking also needs the heading within this angle of the slot axis, either way (rad).
             vehicle: the ego's size, limits and steering geometry.
             render_mode: None, or "rgb_array" for ``render()``'s top view.
+            device: where ``bundle=`` renders: ``"auto"`` (None: the same), ``"cpu"`` or ``"cuda[:N]"``
+                (``LocalSim``). A server or a given sim renders on its own device, so it takes only None or auto.
 
         Raises:
-            ValueError: not exactly one of ``bundle``, ``server``, ``sim``; an unknown ``render_mode``; a scene
-                without a free slot.
+            ValueError: not exactly one of ``bundle``, ``server``, ``sim``; an unknown ``render_mode``; a
+                ``device`` other than None or auto with ``server`` or ``sim``; a scene without a free slot.
+            DeviceError: a bad ``device`` name, or a GPU this machine lacks.
             RequestError: an unknown camera or a too small ``scale``.
         """
         if sum(source is not None for source in (bundle, server, sim)) != 1:
@@ -155,8 +159,11 @@ class ParkingEnv(gym.Env):
                              "or sim=<LocalSim or RemoteSim>")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.sim: LocalSim | RemoteSim = (sim if sim is not None else LocalSim(bundle) if server is None
-                                          else RemoteSim(server, scene=scene, api_key=api_key))
+        if bundle is None and device not in (None, "auto"):
+            raise ValueError(f"device={device!r} applies to bundle= only: with server= or sim= the frames are "
+                             "rendered on that source's own device (parksim serve --device)")
+        self.sim: LocalSim | RemoteSim = (sim if sim is not None else LocalSim(bundle, device=device or "auto")
+                                          if server is None else RemoteSim(server, scene=scene, api_key=api_key))
         info = self.sim.info()
         if not info.get("map") or not free_slots(info["map"]):
             raise ValueError(f"scene {info['id']!r} has no slot map with a free slot to park in")

@@ -6,17 +6,21 @@ The HTTP server renders with it, the gymnasium env drives it directly, and ``Rem
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .frames import Frame, RequestError, npz_bytes_bound
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["LocalSim", "MIN_IMAGE_SIDE", "SUBSETS_KEPT"]
 
@@ -29,43 +33,59 @@ SUBSETS_KEPT = 16
 class LocalSim:
     """A loaded bundle that renders frames in-process; shares render()'s cached scaled rigs and IPM grids."""
 
-    def __init__(self, bundle: Any, scene_id: str = "scene") -> None:
-        """Load (or take) the bundle and measure the scene's bounds.
+    def __init__(self, bundle: Any, scene_id: str = "scene", device: str | torch.device = "auto") -> None:
+        """Resolve the device, load (or take) the bundle, measure the scene's bounds and move the Gaussians there.
+
+        Renders run where the Gaussians are; frames are always numpy arrays on the CPU (one copy back per image).
 
         Args:
-            bundle: a ``Bundle``, or a bundle folder to ``load``.
+            bundle: a ``Bundle``, or a bundle folder to ``load``. A given ``Bundle`` is not changed: on another
+                device the simulator keeps a copy whose scene lives there.
             scene_id: the scene's name in ``info()`` and error messages.
+            device: ``"auto"``, ``"cpu"`` or ``"cuda[:N]"`` (``parksim.device.resolve_device``), or a torch device.
 
         Raises:
+            DeviceError: a bad device name, or a CUDA device this machine lacks (before the bundle is read).
             BundleError: a folder that ``parksim.bundle.load`` refuses.
         """
         from .bundle import Bundle, load
+        from .device import resolve_device
 
+        self.device = resolve_device(device)
         self.bundle: Bundle = bundle if isinstance(bundle, Bundle) else load(bundle)
         self.id = scene_id
         self.bounds = self._bounds()
+        if self.bundle.scene.means.device != self.device:
+            self.bundle = dataclasses.replace(self.bundle, scene=self.bundle.scene.to(device=self.device))
         self._subsets: OrderedDict[int, Any] = OrderedDict()
         self._subsets_lock = threading.Lock()
 
     @classmethod
-    def from_dir(cls, directory: str | Path) -> LocalSim:
+    def from_dir(cls, directory: str | Path, device: str | torch.device = "auto") -> LocalSim:
         """Load the bundle folder ``directory``; its name is the scene id.
 
         Args:
             directory: the bundle folder.
+            device: where it renders, as for ``LocalSim``.
 
         Returns:
             The simulator.
         """
-        return cls(Path(directory), Path(directory).name)
+        return cls(Path(directory), Path(directory).name, device)
 
     def _bounds(self) -> dict[str, list[float]]:
-        """Scene extent (m): the map's garage floor and height, else the 1st-99th percentile of the Gaussians."""
-        garage = (self.bundle.map or {}).get("garage")
-        if garage:
-            return {"x": list(map(float, garage["x"])), "y": list(map(float, garage["y"])),
-                    "z": [0.0, float(garage.get("height", 3.0))]}
-        means = self.bundle.scene.means.detach().double()
+        """Scene extent (m): the map's garage floor and height, else the 1st-99th percentile of the means that lie
+        within the scene's robust extent (``parksim.bundle.absurd_gaussians``), so outliers cannot widen it."""
+        import torch
+
+        from .bundle import absurd_gaussians, garage_box
+
+        box = garage_box(self.bundle.map)
+        if box is not None:
+            return {axis: [float(box[0, i]), float(box[1, i])] for i, axis in enumerate("xyz")}
+        scene = self.bundle.scene
+        keep = ~absurd_gaussians(scene)["mean"]
+        means = scene.means.detach().double()[torch.from_numpy(keep).to(scene.means.device)]
         lo, hi = (means.quantile(q, dim=0).tolist() for q in (0.01, 0.99))
         return {axis: [lo[i], hi[i]] for i, axis in enumerate("xyz")}
 
@@ -102,7 +122,7 @@ class LocalSim:
                 return self._subsets[cell]
         import torch
 
-        subset = scene.subset(torch.from_numpy(grid.members(cell)).long())
+        subset = scene.subset(torch.from_numpy(grid.members(cell)).long().to(scene.means.device))
         with self._subsets_lock:
             self._subsets[cell] = subset
             while len(self._subsets) > SUBSETS_KEPT:
@@ -214,7 +234,7 @@ class LocalSim:
                          method=self.bundle.projection)
             frame.images = {n: to_uint8(res.images[n]) for n in names}
             if depth:
-                frame.depth = {n: res.depth[n].detach().numpy().astype(np.float32) for n in names}
+                frame.depth = {n: res.depth[n].detach().cpu().numpy().astype(np.float32) for n in names}
         frame.timings["views"] = time.perf_counter() - start
         if bev:
             start = time.perf_counter()

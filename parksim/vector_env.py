@@ -124,7 +124,9 @@ class RayVectorEnv(_ParkVectorEnv):
 
     Uses the running Ray instance (Ray starts a local one when none is). ``actor_options`` go to
     ``ray.remote(...).options`` (default: one thread each for torch and numba, as renders here run side by
-    side). Frame sources must be picklable: ``bundle=`` a path every node can read, or ``server=``."""
+    side). Frame sources must be picklable: ``bundle=`` a path every node can read, or ``server=``. ``device=`` goes
+    to each actor's env, which resolves it on its node: Ray shows an actor only the GPUs it reserves, so ask for
+    ``{"num_gpus": ...}`` in ``actor_options`` to render there on a GPU."""
 
     def __init__(self, num_envs: int, max_episode_steps: int | None = None,
                  actor_options: dict[str, Any] | None = None, **env_kwargs: Any) -> None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ..device import DEVICE_HELP
 from .argtypes import integer, number
 
 if TYPE_CHECKING:
@@ -57,6 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="a cell's poses are drawn from the cell grown by this (m), to cover its borders")
     p.add_argument("--no-visibility", action="store_true", help="do not store per-cell visibility")
     p.add_argument("--seed", type=int, default=0, help="pose sampling seed")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -69,14 +71,17 @@ def run(args: argparse.Namespace) -> int:
     from ..bundle import load, save
     from ..compact import CompactOptions, compact_bundle
     from ..compact.poses import garage_extent
+    from ..device import describe_device, resolve_device
     from ..fileio import atomic_directory
     from .outputs import check_output_folder
 
+    device = resolve_device(args.device)
     check_output_folder(args.output, overwrite=args.overwrite)
     options = CompactOptions(args.budget, args.cell_budget, args.min_weight, args.sh_tolerance, args.cell,
                              args.poses_per_cell, args.margin, args.seed, not args.no_visibility, args.ranking)
     steps = FINETUNE_ITERATIONS if args.finetune is None else args.finetune
     bundle = load(args.bundle)
+    bundle.scene = bundle.scene.to(device=device)   # compaction runs where the Gaussians are
     garage_extent(bundle.map)   # a bundle that cannot be compacted says so before the dataset is looked for
     reader = _dataset(args.dataset, bundle.meta) if steps or args.ranking == "benefit-cost" else None
     config = bundle_config(args.bundle, bundle.meta)
@@ -92,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
     note = (f"; fine-tuned {tuned['iterations']} steps, loss {tuned['loss_first_tenth']:.4f} -> "
             f"{tuned['loss_last_tenth']:.4f}" if tuned else "")
     print(f"{args.output}: {r['gaussians']} of {r['source_gaussians']} Gaussians ({r['ranking']} ranking), SH degree "
-          f"{r['sh_degree']} (per Gaussian: {r['sh_degree_counts']}), measured from {r['poses']} poses{cells}{note}")
+          f"{r['sh_degree']} (per Gaussian: {r['sh_degree_counts']}), measured from {r['poses']} poses on "
+          f"{describe_device(device)}{cells}{note}")
     return 0
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..device import DEVICE_HELP
 from .argtypes import number
 
 __all__ = ["add_parser", "run"]
@@ -25,6 +26,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--depth", action="store_true", help="also write each camera's depth map as .npy")
     p.add_argument("--scale", type=number(0, 4, open_low=True), default=1.0,
                    help="resolution factor of the fisheye views, in (0, 4]")
+    p.add_argument("--device", default="auto", help=DEVICE_HELP)
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     return p
 
@@ -40,14 +42,17 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     import numpy as np
+    import torch
 
     from ..bundle import load
+    from ..device import describe_device, resolve_device
     from ..fileio import atomic_files
     from ..geometry import as_pose
     from ..imageio import write_image
     from ..render import render
     from .outputs import check_output_folder
 
+    device = resolve_device(args.device)
     pose = as_pose(_pose(args.pose))
     check_output_folder(args.output)
     bundle = load(args.bundle)
@@ -55,19 +60,23 @@ def run(args: argparse.Namespace) -> int:
     unknown = [c for c in cameras or [] if c not in bundle.rig.cameras]
     if unknown:
         raise ValueError(f"unknown camera(s) {unknown}; the rig has {bundle.rig.names}")
+    scene = bundle.scene.to(device=device)
     start = time.perf_counter()
-    out = render(bundle.scene, bundle.rig, pose, cameras=cameras, bev=args.bev, scale=args.scale)
+    out = render(scene, bundle.rig, pose, cameras=cameras, bev=args.bev, scale=args.scale)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)   # the time of the render, not of queueing its kernels
     took = time.perf_counter() - start
 
     def write(folder: Path) -> None:
         for name, image in out.images.items():
             write_image(folder / f"{name}.png", image)
             if args.depth:
-                np.save(folder / f"{name}_depth.npy", out.depth[name].detach().numpy())
+                np.save(folder / f"{name}_depth.npy", out.depth[name].detach().cpu().numpy())
         if out.bev is not None:
             write_image(folder / "bev.png", out.bev)
 
     atomic_files(args.output, write)
     what = ", ".join(list(out.images) + (["bev"] if out.bev is not None else []))
-    print(f"rendered {what} from {len(bundle.scene)} Gaussians in {took * 1000:.0f} ms -> {args.output}/")
+    print(f"rendered {what} from {len(scene)} Gaussians on {describe_device(device)} in {took * 1000:.0f} ms "
+          f"-> {args.output}/")
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from ..device import DEVICE_HELP
 from .argtypes import integer, number, tcp_port
 
 __all__ = ["add_parser", "run"]
@@ -41,6 +42,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="largest reply one request may ask for, counted before rendering; larger: 413 (default 64)")
     p.add_argument("--reply-budget-mib", type=number(0, open_low=True),
                    help="reply MiB rendered or being sent at once over all clients; beyond: 503 (default 256)")
+    p.add_argument("--device", default="auto",
+                   help=DEVICE_HELP + "; with --ray each replica resolves it on its node (cuda needs --replica-gpus)")
     ray = p.add_argument_group("Ray Serve (needs parksim[ray]; docs/ray.md)",
                                "the same API from Ray Serve replicas, each loading the scenes itself (so --scenes "
                                "must be readable at the same path on every node); the limits above are per replica")
@@ -54,6 +57,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                        help="scale between MIN and MAX replicas (1 <= MIN <= MAX) on each replica's ongoing requests")
     ray.add_argument("--replica-cpus", type=integer(1),
                      help="CPUs each replica reserves and renders with (default 1)")
+    ray.add_argument("--replica-gpus", type=number(0),
+                     help="GPUs each replica reserves, fractions allowed (0.25: four replicas share one GPU); "
+                          "default 0: Ray shows the replica no GPU, so --device auto renders on its CPUs")
     return p
 
 
@@ -78,12 +84,13 @@ def run(args: argparse.Namespace) -> int:
     settings = Settings.from_env(api_key=api_key, workers=args.workers, queue_size=args.queue_size,
                                  max_scale=args.max_scale, max_batch=args.max_batch,
                                  max_reply_bytes=_mib(args.max_reply_mib),
-                                 reply_budget_bytes=_mib(args.reply_budget_mib))
+                                 reply_budget_bytes=_mib(args.reply_budget_mib), device=args.device)
     if args.ray:
         serve_ray(args.scenes, settings, args.host, args.port, args.replicas or 1, args.autoscale,
-                  args.replica_cpus or 1, args.address, strict=args.strict)
+                  args.replica_cpus or 1, args.address, strict=args.strict, replica_gpus=args.replica_gpus or 0.0)
         return 0
-    given = [flag for flag in ("address", "replicas", "autoscale", "replica_cpus") if getattr(args, flag) is not None]
+    given = [flag for flag in ("address", "replicas", "autoscale", "replica_cpus", "replica_gpus")
+             if getattr(args, flag) is not None]
     if given:
         raise ValueError(f"--{given[0].replace('_', '-')} only applies with --ray")
     serve(args.scenes, settings, args.host, args.port, strict=args.strict)

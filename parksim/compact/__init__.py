@@ -4,6 +4,8 @@ Poses are sampled in the drivable area of the bundle's map (``poses``); each Gau
 weight per grid cell and the Gaussian-pixel pairs it costs there are measured (``measure``), with its summed
 weight over the training views (``benefit``) when the ranking needs it; the scene is reduced from those
 (``reduce``), optionally fine-tuned in between (a ``tune`` callback: ``parksim.recon.finetune`` in the CLI).
+Projections and renders run on the scene's device (``parksim compact --device`` moves it there), the weight and
+pair kernels on the CPU; measurements are CPU tensors and the compact scene stays on the scene's device.
 """
 
 from __future__ import annotations
@@ -101,7 +103,8 @@ def reduce_bundle(bundle: Bundle, measurement: Measurement, options: CompactOpti
     lowered and the visibility grid attached."""
     grid, weights = measurement.grid, measurement.weights
     keep = select(weights.amax(dim=0), options.budget, options.min_weight, measurement.score(options.ranking))
-    pruned = Bundle(bundle.scene.subset(keep), bundle.rig, bundle.map, bundle.meta, None, bundle.poses)
+    pruned = Bundle(bundle.scene.subset(keep.to(bundle.scene.means.device)), bundle.rig, bundle.map, bundle.meta,
+                    None, bundle.poses)
     if tune is not None:
         pruned = tune(pruned)
         if len(pruned.scene) != len(keep):

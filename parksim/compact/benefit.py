@@ -19,7 +19,8 @@ __all__ = ["summed_weights"]
 
 
 def summed_weights(scene: GaussianScene, rig: Rig, reader: DatasetReader, progress: bool = False) -> Tensor:
-    """[N] float64: each Gaussian's blending weight summed over every pixel of every (train frame, camera) view."""
+    """[N] float64 (CPU): each Gaussian's blending weight summed over every pixel of every (train frame, camera)
+    view, rendered on the scene's device."""
     from tqdm import tqdm
 
     means, quats, scales, opacity = (t.detach().to(torch.float32) for t in
@@ -27,9 +28,9 @@ def summed_weights(scene: GaussianScene, rig: Rig, reader: DatasetReader, progre
     total = torch.zeros(len(scene), dtype=torch.float64)
     views = [(f, c) for f in reader.split["train"] for c in rig.names]
     for frame, camera in tqdm(views, desc="benefit", unit="view", disable=not progress, dynamic_ncols=True):
-        dc = torch.zeros(len(scene), 1, 3, requires_grad=True)
+        dc = torch.zeros(len(scene), 1, 3, device=means.device, requires_grad=True)
         image = render(GaussianScene(means, quats, scales, opacity, dc, 0), rig, reader.view_pose(camera, frame),
                        cameras=[camera]).images[camera]
         (grad,) = torch.autograd.grad(image[..., 0].sum(), dc)
-        total += grad[:, 0, 0].double() / SH_C0
+        total += grad[:, 0, 0].double().cpu() / SH_C0
     return total

@@ -40,7 +40,7 @@ class PoseMeasure:
 def tile_pairs(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tensor, width: int, height: int) -> Tensor:
     """[M] float64: Gaussian-pixel pairs each projected Gaussian spans in the compositor's tiles (0 if culled)."""
     def f32(t: Tensor) -> np.ndarray:
-        return np.ascontiguousarray(t.detach().to(torch.float32).numpy())
+        return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
     m = means2d.shape[0]
     with keep_torch_threads():
@@ -58,20 +58,25 @@ def tile_pairs(means2d: Tensor, conics: Tensor, opacities: Tensor, depths: Tenso
 @torch.no_grad()
 def pose_measure(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float],
                  cameras: Sequence[str] | None = None) -> PoseMeasure:
-    """Each Gaussian's largest blending weight and its summed pairs over the pixels of ``cameras`` (default all)."""
+    """Each Gaussian's largest blending weight and its summed pairs over the pixels of ``cameras`` (default all).
+
+    The projection runs on the scene's device, the weight and pair kernels on the CPU; the results are CPU tensors.
+    """
     T_world_vehicle = as_pose(pose)
     opacity = torch.sigmoid(scene.opacity_logits)
     best = torch.zeros(len(scene), dtype=torch.float32)
     pairs = torch.zeros(len(scene), dtype=torch.float64)
     for name in cameras if cameras is not None else rig.names:
         cam = rig.cameras[name]
-        T_camera_world = invert_transform(T_world_vehicle @ cam.T_vehicle_camera).to(scene.means.dtype)
+        T_camera_world = invert_transform(T_world_vehicle @ cam.T_vehicle_camera).to(scene.means.device,
+                                                                                     scene.means.dtype)
         R, t = T_camera_world[:3, :3], T_camera_world[:3, 3]
         proj = project_gaussians(torch.addmm(t, scene.means, R.T), (scene.quats, scene.log_scales, R), cam.model)
         rows = proj.valid.nonzero().squeeze(1)
         index = proj.index[rows]
         footprint = (proj.means2d[rows], proj.conics[rows], opacity[index], proj.depths[rows],
                      cam.model.width, cam.model.height)
+        index = index.cpu()
         best[index] = torch.maximum(best[index], max_weights(*footprint))   # a Gaussian appears once per camera
         pairs.index_add_(0, index, tile_pairs(*footprint))
     return PoseMeasure(best, pairs)

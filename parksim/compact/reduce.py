@@ -89,7 +89,7 @@ def lower_sh(scene: GaussianScene, tolerance: float) -> tuple[GaussianScene, Ten
     bound = sh_change_bound(scene.sh, scene.sh_degree)
     degrees = (bound > tolerance).sum(dim=1)   # bound is non-increasing in d, so this is the first d within it
     keep_k = (degrees + 1) ** 2
-    coeff = torch.arange(scene.sh.shape[1])
+    coeff = torch.arange(scene.sh.shape[1], device=scene.sh.device)
     sh = torch.where((coeff[None, :] < keep_k[:, None])[..., None], scene.sh, torch.zeros_like(scene.sh))
     top = int(degrees.max()) if len(degrees) else 0
     return GaussianScene(scene.means, scene.quats, scene.log_scales, scene.opacity_logits,

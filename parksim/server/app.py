@@ -3,8 +3,9 @@
 Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is allowed:
 400 a body that is not parseable JSON (malformed, not UTF-8, nested too deeply, an integer too long) or a key
 in the query string, 422 bad request values (in a body that parsed), 404 unknown scene or route, 401 missing key,
-421 a ``Host`` the server does not answer to (``Settings.allowed_hosts``), 413 body or reply too large,
-503 (with Retry-After) when the render queue or the reply budget is full.
+421 a ``Host`` the server does not answer to (``Settings.allowed_hosts``), 413 body or reply too large (or a
+render larger than the GPU's memory), 503 (with Retry-After) when the render queue, the reply budget or the GPU's
+free memory is full.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from parksim.bundle import Bundle
 from parksim.frames import RequestError
+from parksim.render.device_memory import DeviceMemoryError
 from parksim.sim import LocalSim
 
 from .auth import host_name
@@ -37,13 +39,14 @@ from .settings import Settings
 __all__ = ["create_app"]
 
 
-def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path], strict: bool) -> SceneRegistry:
+def _registry(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | Path], strict: bool,
+              device: str) -> SceneRegistry:
     """A registry from a scenes folder (``strict``: no bundle refused), a registry, or ``{id: bundle or folder}``."""
     if isinstance(scenes, SceneRegistry):
         return scenes
     if isinstance(scenes, Mapping):
-        return SceneRegistry(LocalSim(b, scene_id) for scene_id, b in scenes.items())
-    return SceneRegistry.from_dir(scenes, strict)
+        return SceneRegistry(LocalSim(b, scene_id, device) for scene_id, b in scenes.items())
+    return SceneRegistry.from_dir(scenes, strict, device)
 
 
 _BODY_PARSE_FAILED = "There was an error parsing the body"  # FastAPI's 400 when json.loads raises not a JSONDecodeError
@@ -105,6 +108,10 @@ def _install_errors(app: FastAPI) -> None:
     async def _too_large(_: Request, exc: ReplyTooLarge) -> JSONResponse:
         return _error(413, str(exc))
 
+    @app.exception_handler(DeviceMemoryError)
+    async def _gpu_memory(_: Request, exc: DeviceMemoryError) -> JSONResponse:
+        return _error(413, str(exc)) if exc.never else _error(503, str(exc), {"Retry-After": str(exc.retry_after)})
+
     @app.exception_handler(PoolBusy)
     @app.exception_handler(BudgetFull)
     async def _busy(_: Request, exc: PoolBusy | BudgetFull) -> JSONResponse:
@@ -153,7 +160,7 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     Args:
         scenes: a folder of scene bundles (one sub-folder each, its name the scene id), a ``SceneRegistry``,
             or ``{scene_id: Bundle or bundle folder}``.
-        settings: limits, pool size, reply budgets and API key; ``Settings()`` when None.
+        settings: limits, pool size, reply budgets, API key and device; ``Settings()`` when None.
         strict: with a scenes folder, fail on the first bundle that does not load; by default such a bundle is
             refused (logged as a warning, listed under ``refused`` in ``/scenes`` and ``/healthz``) and the
             others are served.
@@ -166,9 +173,10 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     Raises:
         BundleError: no scene to serve (every bundle refused), a missing scenes folder, or, with ``strict`` or
             given bundles, a bundle that does not load.
+        DeviceError: ``settings.device`` is a bad name or a GPU this machine lacks.
     """
     settings = settings or Settings()
-    registry = _registry(scenes, strict)
+    registry = _registry(scenes, strict, settings.device)
 
     app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__, docs_url=None, redoc_url=None,
                   description="Renders of reconstructed parking garages (four fisheye views and a BEV) at any ego "

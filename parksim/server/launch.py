@@ -18,6 +18,7 @@ from pathlib import Path
 
 import uvicorn
 
+from ..device import describe_device, resolve_device
 from .app import create_app
 from .auth import allowed_hosts, check_bind
 from .settings import Settings
@@ -84,27 +85,30 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
 
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
-        settings: the server's limits and API key.
+        settings: the server's limits, API key and device (``settings.device``, resolved here).
         host: interface to listen on; other than loopback it needs ``settings.api_key``. Requests whose ``Host``
             is neither a loopback name nor ``host`` are refused (421), unless ``host`` is 0.0.0.0 or ::.
         port: TCP port.
-        log: receives the one line saying what is served where (and which bundles were refused), once the scenes
-            are loaded.
+        log: receives the one line saying what is served where, on which device (and which bundles were refused),
+            once the scenes are loaded.
         strict: fail on the first bundle that does not load instead of refusing it.
 
     Raises:
         ValueError: a non-loopback ``host`` without an API key, or an unresolvable ``host``.
+        DeviceError: ``settings.device`` is a bad name or a GPU this machine lacks (before the port is taken).
         OSError: the port is taken (before any scene loads).
         parksim.bundle.BundleError: no loadable scene under ``scenes``, or with ``strict`` a bundle that does not
             load.
     """
     settings = _guarded(host, settings)
+    device = resolve_device(settings.device)
     sockets = bind(host, port)
     try:
         app = create_app(scenes, settings, strict)
         registry = app.state.registry
         refused = f"; refused {', '.join(registry.refused)} (see /scenes)" if registry.refused else ""
-        log(f"serving {', '.join(registry.ids)} on http://{host}:{port} (viewer at /, docs at /docs){refused}")
+        log(f"serving {', '.join(registry.ids)} on http://{host}:{port} (rendering on {describe_device(device)}; "
+            f"viewer at /, docs at /docs){refused}")
         server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
         with contextlib.suppress(KeyboardInterrupt):   # Ctrl-C is the way to stop it, as with uvicorn.run
             server.run(sockets=sockets)
@@ -115,7 +119,8 @@ def serve(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port:
 
 def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", port: int = 8000,
               replicas: int = 1, autoscale: tuple[int, int] | None = None, replica_cpus: int = 1,
-              address: str | None = None, log: Callable[[str], None] = _say, strict: bool = False) -> None:
+              address: str | None = None, log: Callable[[str], None] = _say, strict: bool = False,
+              replica_gpus: float = 0.0) -> None:
     """Serve the scenes from Ray Serve replicas until Ctrl-C or SIGTERM, then take the deployment (and a Ray this
     call started) down. Each replica loads the scenes itself, so ``scenes`` must be readable at the same path on
     every node; ``settings``' limits hold per replica. Each replica refuses a bundle that does not load as
@@ -123,7 +128,8 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
 
     Args:
         scenes: a folder of bundle folders, or one bundle folder.
-        settings: the server's limits and API key.
+        settings: the server's limits, API key and device; each replica resolves ``settings.device`` on its node
+            (``auto`` takes the GPU it reserved, if any).
         host: interface Serve's HTTP proxy listens on; other than loopback it needs ``settings.api_key``; the
             ``Host`` check is as for :func:`serve`.
         port: TCP port of the proxy.
@@ -133,14 +139,18 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
         address: ``HEAD:PORT`` of a Ray cluster to join; None starts a local Ray on this machine's cores.
         log: receives the one line saying where it serves, once every replica has loaded the scenes.
         strict: a replica fails to start on the first bundle that does not load instead of refusing it.
+        replica_gpus: GPUs each replica reserves (fractions share one GPU among replicas); 0: none, and Ray then
+            shows a replica no GPU.
 
     Raises:
         ValueError: Ray Serve is not installed, the scenes folder is missing, the cluster cannot be reached or a
-            replica fails to start (one line each; no loadable scene, or with ``strict`` a bad bundle), or a
-            non-loopback ``host`` without an API key.
+            replica fails to start (one line each; no loadable scene, or with ``strict`` a bad bundle), a
+            non-loopback ``host`` without an API key, or a ``cuda`` device with no ``replica_gpus``.
+        DeviceError: ``settings.device`` is neither ``cuda[:N]`` nor a name this machine resolves.
         OSError: the port is taken (before Ray starts).
     """
     settings = _guarded(host, settings)
+    _check_replica_device(settings.device, replica_gpus)
     try:
         from . import ray_serve  # optional dependency (parksim[ray]): imported only when asked for
     except ModuleNotFoundError as e:
@@ -152,15 +162,27 @@ def serve_ray(scenes: str | Path, settings: Settings, host: str = "127.0.0.1", p
         raise ValueError(f"scenes folder not found: {scenes}")
     for sock in bind(host, port):   # a busy port fails before Ray starts; Serve's proxy binds it next
         sock.close()
-    scaling = ray_serve.Scaling(replicas, autoscale, replica_cpus)
+    scaling = ray_serve.Scaling(replicas, autoscale, replica_cpus, replica_gpus)
     ray_serve.start(scenes, settings, scaling, host, port, address, strict)
     try:
         size = f"{autoscale[0]} to {autoscale[1]}" if autoscale else str(replicas)
-        log(f"serving on http://{host}:{port} from {size} Ray Serve replica(s) of {replica_cpus} CPU(s) "
-            "(viewer at /, docs at /docs)")
+        gpus = f" and {replica_gpus:g} GPU(s)" if replica_gpus else ""
+        log(f"serving on http://{host}:{port} from {size} Ray Serve replica(s) of {replica_cpus} CPU(s){gpus} "
+            f"(rendering on {settings.device} on each replica's node; viewer at /, docs at /docs)")
         wait_for_interrupt()
     finally:
         ray_serve.stop(own_ray=address is None)
+
+
+def _check_replica_device(device: str, replica_gpus: float) -> None:
+    """Check on the driver what it can of a replica's device: ``cuda[:N]`` needs reserved GPUs (Ray hides the others
+    from a replica), and any other name must resolve here (auto, cpu; a bad name fails now, not in every replica)."""
+    if device.strip().lower().startswith("cuda"):
+        if not replica_gpus:
+            raise ValueError(f"--device {device} with --ray needs --replica-gpus > 0: a Ray Serve replica sees only "
+                             "the GPUs it reserves")
+    else:
+        resolve_device(device)
 
 
 def wait_for_interrupt(poll_s: float = 0.5) -> None:

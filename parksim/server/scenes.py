@@ -12,13 +12,18 @@ import logging
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from parksim.bundle import META, BundleError
+from parksim.device import resolve_device
 from parksim.frames import RequestError
 from parksim.sim import LocalSim
 
 from .schemas import Pose
 from .settings import Settings
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["SceneRegistry", "UnknownScene", "check_pose"]
 
@@ -41,12 +46,16 @@ class SceneRegistry:
             raise BundleError(f"no scene to serve: every bundle was refused ({why})" if why else "no scene to serve")
 
     @classmethod
-    def from_dir(cls, scenes_dir: str | Path, strict: bool = False) -> SceneRegistry:
-        """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle).
+    def from_dir(cls, scenes_dir: str | Path, strict: bool = False, device: str | torch.device = "auto"
+                 ) -> SceneRegistry:
+        """Every bundle folder directly under ``scenes_dir`` (or ``scenes_dir`` itself when it is a bundle), each
+        rendering on ``device`` (``auto``, ``cpu`` or ``cuda[:N]``, resolved once, before any bundle loads).
 
         A bundle that fails to load is refused with its one-line error, logged as a warning, and the others are
-        served; with ``strict`` the first such error is raised instead. ``BundleError`` when none loads.
+        served; with ``strict`` the first such error is raised instead. ``BundleError`` when none loads;
+        ``DeviceError`` for a bad device name or a missing GPU.
         """
+        device = resolve_device(device)   # a bad device is the caller's error, not a refusal of every bundle
         root = Path(scenes_dir)
         if not root.is_dir():
             raise BundleError(f"scenes folder not found: {root}")
@@ -57,7 +66,7 @@ class SceneRegistry:
         refused: dict[str, str] = {}
         for d in dirs:
             try:
-                sims.append(LocalSim.from_dir(d))
+                sims.append(LocalSim.from_dir(d, device))
             except (ValueError, OSError) as e:   # BundleError, a bad field, an unreadable file: not a bug
                 if strict:
                     raise

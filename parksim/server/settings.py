@@ -65,6 +65,9 @@ class Settings(BaseModel):
     allowed_hosts: tuple[str, ...] | None = Field(None, description="Host header names (port ignored) the server "
                                                   "answers to, others get 421; None: any. parksim serve sets the "
                                                   "loopback names and --host unless bound to 0.0.0.0 or ::")
+    device: str = Field("auto", description="where the scenes render: auto, cpu or cuda[:N] "
+                        "(parksim.device.resolve_device), resolved where the scenes load: by the server process, "
+                        "or by each Ray Serve replica on its node")
 
     @field_validator("api_key")
     @classmethod
