@@ -222,22 +222,66 @@ class LocalSim:
         Raises:
             RequestError: as ``check``.
         """
+        return self.render_batch([pose], cameras, bev, scale, depth)[0]
+
+    def render_batch(self, poses: Sequence[Sequence[float]], cameras: Sequence[str] | None = None,
+                     bev: bool = False, scale: float = 1.0, depth: bool = False) -> list[Frame]:
+        """``render`` at several poses, together where they share a scene.
+
+        The poses that share a scene (all of them without visibility cells, those of one cell with them) are
+        rendered by one ``parksim.render.render_batch`` (one projection pass; on a GPU one kernel launch and one
+        rasterizer call), and the BEVs in one batched IPM on a GPU.
+
+        Args:
+            poses: B poses, each as ``render`` takes.
+            cameras: as ``render``.
+            bev: as ``render``.
+            scale: as ``render``.
+            depth: as ``render``.
+
+        Returns:
+            B frames as ``render`` gives, each equal to ``render`` at its pose; each frame's ``timings`` are the
+            batch's divided by B.
+
+        Raises:
+            RequestError: as ``check``.
+        """
+        import torch
+
         from .imageio import to_uint8
-        from .render import bev_ipm, render
+        from .render import bev_ipm, render_batch
 
         names = self.check(cameras, scale)
         needed = self.cameras if bev else names
-        frame = Frame()
+        frames = [Frame() for _ in poses]
         start = time.perf_counter()
+        results: list[Any] = [None] * len(poses)
         if needed:
-            res = render(self.scene_at(pose), self.bundle.rig, list(pose), cameras=needed, scale=scale,
-                         method=self.bundle.projection)
-            frame.images = {n: to_uint8(res.images[n]) for n in names}
-            if depth:
-                frame.depth = {n: res.depth[n].detach().cpu().numpy().astype(np.float32) for n in names}
-        frame.timings["views"] = time.perf_counter() - start
+            groups: dict[int, tuple[Any, list[int]]] = {}
+            for i, pose in enumerate(poses):
+                scene = self.scene_at(pose)
+                groups.setdefault(id(scene), (scene, []))[1].append(i)
+            for scene, members in groups.values():
+                rendered = render_batch(scene, self.bundle.rig, [list(poses[i]) for i in members], cameras=needed,
+                                        scale=scale, method=self.bundle.projection)
+                for i, res in zip(members, rendered):
+                    results[i] = res
+            for frame, res in zip(frames, results):
+                frame.images = {n: to_uint8(res.images[n]) for n in names}
+                if depth:
+                    frame.depth = {n: res.depth[n].detach().cpu().numpy().astype(np.float32) for n in names}
+        share = (time.perf_counter() - start) / max(len(poses), 1)
+        for frame in frames:
+            frame.timings["views"] = share
         if bev:
             start = time.perf_counter()
-            frame.bev = to_uint8(bev_ipm(self.bundle.rig, scale)(res.images))
-            frame.timings["bev"] = time.perf_counter() - start
-        return frame
+            ipm = bev_ipm(self.bundle.rig, scale)
+            if self.device.type == "cuda" and len(results) > 1:
+                bevs = list(ipm({n: torch.stack([r.images[n] for r in results]) for n in self.cameras}))
+            else:
+                bevs = [ipm(r.images) for r in results]
+            share = (time.perf_counter() - start) / len(poses)
+            for frame, image in zip(frames, bevs):
+                frame.bev = to_uint8(image)
+                frame.timings["bev"] = share
+        return frames

@@ -1,9 +1,10 @@
 """Vector ``ParkSim-v0`` envs past one process: sub-envs in Ray actors, or one batched render request per step.
 
 ``RayVectorEnv`` runs each ``ParkingEnv`` in its own Ray actor (each loads the bundle and renders itself, on any
-node of the cluster); ``BatchRenderVectorEnv`` steps every car in this process and renders all their poses in
-one ``POST /render`` to ``parksim serve`` or its Ray Serve deployment. Both autoreset on the step after an
-episode ends (gymnasium's next-step mode) and truncate at ``max_episode_steps`` as ``TimeLimit`` does.
+node of the cluster); ``BatchRenderVectorEnv`` steps every car in this process and renders all their poses at
+once: in one ``POST /render`` to ``parksim serve`` or its Ray Serve deployment, or, given a bundle, in one
+in-process ``LocalSim.render_batch`` (on a GPU: one kernel launch for every car's cameras). Both autoreset on the
+step after an episode ends (gymnasium's next-step mode) and truncate at ``max_episode_steps`` as ``TimeLimit`` does.
 ``make_vector_env`` is the registration's ``vector_entry_point``: ``gym.make_vec("ParkSim-v0", num_envs=N, ...)``.
 """
 
@@ -153,12 +154,24 @@ class RayVectorEnv(_ParkVectorEnv):
 
 
 class BatchRenderVectorEnv(_ParkVectorEnv):
-    """``num_envs`` ``ParkingEnv``s in this process sharing one ``RemoteSim``: each step renders every pose in
-    one ``POST /render`` to ``server`` (``parksim serve`` or its Ray Serve deployment)."""
+    """``num_envs`` ``ParkingEnv``s in this process sharing one simulator: each step renders every pose at once,
+    in one ``POST /render`` to ``server`` (``parksim serve`` or its Ray Serve deployment) or, with ``bundle``, in
+    one ``LocalSim.render_batch`` on ``device``."""
 
-    def __init__(self, num_envs: int, server: str, scene: str | None = None, api_key: str | None = None,
-                 max_episode_steps: int | None = None, **env_kwargs: Any) -> None:
-        self.sim = RemoteSim(server, scene=scene, api_key=api_key)
+    def __init__(self, num_envs: int, server: str | None = None, scene: str | None = None,
+                 api_key: str | None = None, max_episode_steps: int | None = None, bundle: Any = None,
+                 device: str | None = None, **env_kwargs: Any) -> None:
+        if (server is None) == (bundle is None):
+            raise ValueError("BatchRenderVectorEnv renders through a server or a bundle: give server=<URL> or "
+                             "bundle=<folder>, not both")
+        if bundle is not None:
+            from .sim import LocalSim
+
+            self.sim: RemoteSim | LocalSim = LocalSim(bundle, device=device or "auto")
+        else:
+            if device not in (None, "auto"):
+                raise ValueError(f"device={device!r} applies to bundle= only: a server renders on its own device")
+            self.sim = RemoteSim(server, scene=scene, api_key=api_key)
         self.envs = [ParkingEnv(sim=self.sim, **env_kwargs) for _ in range(num_envs)]
         first = self.envs[0]
         self._setup(num_envs, (first.observation_space, first.action_space), max_episode_steps)
@@ -175,20 +188,21 @@ class BatchRenderVectorEnv(_ParkVectorEnv):
                 for env, frame, (reward, terminated, info) in zip(self.envs, self._frames(), done)]
 
     def close_extras(self, **kwargs: Any) -> None:
-        """Close the HTTP client."""
-        self.sim.close()
+        """Close the HTTP client (an in-process simulator holds nothing to close)."""
+        if isinstance(self.sim, RemoteSim):
+            self.sim.close()
 
 
 def make_vector_env(num_envs: int, backend: str = "ray", max_episode_steps: int | None = None,
                     **kwargs: Any) -> RayVectorEnv | BatchRenderVectorEnv:
     """``vector_entry_point`` of ``ParkSim-v0``: ``backend="ray"`` (``RayVectorEnv``) or ``"batch"``
-    (``BatchRenderVectorEnv``, needs ``server=``); the other keywords go to ``ParkingEnv``."""
+    (``BatchRenderVectorEnv``, needs ``server=`` or ``bundle=``); the other keywords go to ``ParkingEnv``."""
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if num_envs < 1:
         raise ValueError(f"num_envs must be at least 1, got {num_envs}")
     if backend == "ray":
         return RayVectorEnv(num_envs, max_episode_steps=max_episode_steps, **kwargs)
-    if kwargs.get("server") is None:
-        raise ValueError("backend='batch' renders through a server: give server=<URL>")
+    if kwargs.get("server") is None and kwargs.get("bundle") is None:
+        raise ValueError("backend='batch' renders through a server or a bundle: give server=<URL> or bundle=<folder>")
     return BatchRenderVectorEnv(num_envs, max_episode_steps=max_episode_steps, **kwargs)

@@ -108,6 +108,20 @@ def test_batch_render_env_against_a_server_matches_the_ray_env(ray_envs, bundle_
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
+def test_batch_render_env_in_process_matches_the_ray_env(ray_envs, bundle_dir):
+    """backend="batch" with bundle=: every car's cameras rendered in one LocalSim.render_batch per step, the same
+    observations as the Ray actors' single envs."""
+    acts = _actions(LIMIT + 2)
+    local = gym.make_vec("ParkSim-v0", num_envs=N, bundle=str(bundle_dir), backend="batch", device="cpu",
+                         max_episode_steps=LIMIT, **KWARGS)
+    assert isinstance(local, BatchRenderVectorEnv) and local.sim.device.type == "cpu"
+    results = [[envs.reset(seed=SEED)[0]] + [envs.step(a)[0] for a in acts] for envs in (local, ray_envs)]
+    local.close()
+    for a, b in zip(*results):
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
 def test_sync_mode_still_vectorises_in_process(bundle_dir):
     envs = gym.make_vec("ParkSim-v0", num_envs=2, vectorization_mode="sync", bundle=bundle_dir, cameras=[])
     obs, _ = envs.reset(seed=SEED)
@@ -119,6 +133,8 @@ def test_bad_vector_arguments_are_refused(bundle_dir):
     with pytest.raises(ValueError, match="backend must be one of"):
         make_vector_env(2, backend="threads", bundle=bundle_dir)
     with pytest.raises(ValueError, match="give server="):
-        make_vector_env(2, backend="batch", bundle=bundle_dir)
+        make_vector_env(2, backend="batch", cameras=[])
+    with pytest.raises(ValueError, match="not both"):
+        BatchRenderVectorEnv(2, server="http://127.0.0.1:9", bundle=bundle_dir)
     with pytest.raises(ValueError, match="cannot ship sim="):
         make_vector_env(2, sim=ParkingEnv(bundle=bundle_dir, cameras=[]).sim)

@@ -95,9 +95,9 @@ class RenderJob:
         return cls(sim, poses, names, bev, scale, depth, fmt, batch, size)
 
     def _run(self, jpeg_quality: int) -> tuple[bytes, dict[str, float], list[Frame]]:
-        """Render every pose and encode (runs on a pool thread)."""
-        frames = [self.sim.render(_pose_values(p), self.cameras, self.bev, self.scale, self.depth)
-                  for p in self.poses]
+        """Render every pose (together: ``LocalSim.render_batch``) and encode (runs on a pool thread)."""
+        frames = self.sim.render_batch([_pose_values(p) for p in self.poses], self.cameras, self.bev, self.scale,
+                                       self.depth)
         timings = {k: sum(f.timings.get(k, 0.0) for f in frames) for k in ("views", "bev")}
         start = time.perf_counter()
         if self.fmt == "npz":
