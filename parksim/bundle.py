@@ -12,24 +12,32 @@ poses.json         the per-frame poses the scene was trained at, refined by pose
 visibility.npz     per-region visibility written by ``parksim compact`` (optional, named in bundle.json)
 metrics.jsonl/png  training metrics (optional)
 ```
-``load(dir)`` reads it back for rendering; ``save`` writes each file atomically.
+``load(dir)`` reads it back for rendering, dropping finite but absurd Gaussians (``drop_absurd``); ``save`` writes
+each file atomically.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+import logging
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from .fileio import atomic_write, write_json
 from .gaussians import GaussianScene, PLYFormatError
 from .rig import BEVSpec, CalibrationError, Rig
 from .visibility import VisibilityGrid
 
-__all__ = ["Bundle", "BundleError", "load", "save", "recorded_path", "BUNDLE_VERSION", "RECORDED_PATH_POINTS"]
+__all__ = ["Bundle", "BundleError", "load", "save", "recorded_path", "garage_box", "scene_extent", "absurd_gaussians",
+           "drop_absurd", "BUNDLE_VERSION", "RECORDED_PATH_POINTS", "EXTENT_MULTIPLE", "MIN_EXTENT_M",
+           "MAX_OPACITY_LOGIT", "MAX_DROPPED_FRACTION"]
+
+log = logging.getLogger(__name__)
 
 BUNDLE_VERSION = 1
 """Bumped when the bundle layout changes incompatibly."""
@@ -38,6 +46,16 @@ GAUSSIANS, RIG, MAP, META, VISIBILITY = "gaussians.ply", "rig.json", "map.json",
 POSES = "poses.json"
 RECORDED_PATH_POINTS = 256
 """Most poses ``recorded_path`` keeps: enough to draw and measure the path, small enough for a scene's JSON."""
+EXTENT_MULTIPLE = 20.0
+"""A Gaussian whose mean lies more than this many robust extents ``R`` from the scene's centre, or whose largest
+standard deviation exceeds this many ``R``, is absurd (``scene_extent``): no trained garage has either."""
+MIN_EXTENT_M = 1.0
+"""Smallest robust extent ``R`` (m), so a scene of one point or one plane still has room around it."""
+MAX_OPACITY_LOGIT = 100.0
+"""Largest |opacity logit|: float32's sigmoid is exactly 1 past 17 and 0 past -104, where its gradient vanishes, so no
+optimiser moves a logit beyond it (hand-made scenes use 20-60 for "opaque")."""
+MAX_DROPPED_FRACTION = 0.1
+"""Most absurd Gaussians (fraction of the scene) ``load`` drops; beyond it the bundle is refused as corrupt."""
 
 
 def recorded_path(poses: np.ndarray, points: int = RECORDED_PATH_POINTS) -> list[list[float]]:
@@ -63,6 +81,116 @@ class BundleError(ValueError):
     """A bundle folder is missing a file or holds an unreadable one; the message names it."""
 
 
+_REASONS = {"mean": f"mean more than {EXTENT_MULTIPLE:g}x the scene's extent from its centre",
+            "scale": f"largest scale above {EXTENT_MULTIPLE:g}x the scene's extent",
+            "opacity": f"|opacity logit| above {MAX_OPACITY_LOGIT:g}"}
+"""Why ``absurd_gaussians`` flags a Gaussian, in the order it checks (a Gaussian counts under the first only)."""
+
+
+def garage_box(world_map: dict[str, Any] | None) -> np.ndarray | None:
+    """The map's garage as a box: floor ``x`` and ``y`` ranges, ``z`` from 0 to its ``height`` (3 m when unset).
+
+    Args:
+        world_map: map.json's content, or None.
+
+    Returns:
+        ``[2, 3]`` float64 corners ``(lo, hi)`` (m), or None when there is no map or it has no garage.
+
+    Raises:
+        BundleError: the garage lacks an ``x`` or ``y`` range of two numbers, or its height is not a number.
+    """
+    garage = (world_map or {}).get("garage") if isinstance(world_map, dict) else None
+    if not garage:
+        return None
+    try:
+        return np.array([[float(garage["x"][0]), float(garage["y"][0]), 0.0],
+                         [float(garage["x"][1]), float(garage["y"][1]), float(garage.get("height", 3.0))]])
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as e:
+        raise BundleError(f"{MAP}: 'garage' needs 'x' and 'y' as [lo, hi] and a numeric 'height' "
+                          f"({type(e).__name__}: {e})") from None
+
+
+def scene_extent(means: np.ndarray, world_map: dict[str, Any] | None = None) -> tuple[np.ndarray, float]:
+    """The scene's robust centre and extent, which no minority of outliers can move.
+
+    The centre is the per-axis median of the means; the extent ``R`` is the median of the means' distances
+    (largest coordinate difference) from it, at least ``MIN_EXTENT_M`` and, with a garage in the map, at least the
+    distance of its farthest corner, so ``EXTENT_MULTIPLE * R`` around the centre always holds the garage. Both
+    statistics stay put while fewer than half of the Gaussians are outliers.
+
+    Args:
+        means: ``[N, 3]`` Gaussian means (m), N >= 1.
+        world_map: map.json's content, or None.
+
+    Returns:
+        ``(centre [3], R)`` in metres, float64.
+    """
+    means = np.asarray(means, dtype=np.float64)
+    centre = np.median(means, axis=0)
+    extent = max(float(np.median(np.abs(means - centre).max(axis=1))), MIN_EXTENT_M)
+    box = garage_box(world_map)
+    if box is not None:
+        extent = max(extent, float(np.abs(box - centre).max()))
+    return centre, extent
+
+
+def absurd_gaussians(scene: GaussianScene, world_map: dict[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """Finite but absurd Gaussians, per reason: far outside the scene, larger than it, or of a meaningless opacity.
+
+    With ``(c, R) = scene_extent(means, world_map)`` a Gaussian is absurd when its mean lies more than
+    ``EXTENT_MULTIPLE * R`` from ``c`` in some coordinate ("mean"), else when its largest standard deviation
+    exceeds ``EXTENT_MULTIPLE * R`` ("scale"), else when ``|opacity logit| > MAX_OPACITY_LOGIT`` ("opacity").
+
+    Args:
+        scene: the Gaussians (any device).
+        world_map: map.json's content, or None; its garage widens the extent.
+
+    Returns:
+        ``{"mean", "scale", "opacity"}`` to ``[N]`` bool arrays, disjoint (all False for an empty scene).
+    """
+    n = len(scene)
+    if n == 0:
+        return {reason: np.zeros(0, dtype=bool) for reason in _REASONS}
+    means = scene.means.detach().to("cpu", torch.float64).numpy()
+    centre, extent = scene_extent(means, world_map)
+    limit = EXTENT_MULTIPLE * extent
+    far = np.abs(means - centre).max(axis=1) > limit
+    huge = scene.log_scales.detach().to("cpu", torch.float64).numpy().max(axis=1) > math.log(limit)
+    opaque = np.abs(scene.opacity_logits.detach().to("cpu", torch.float64).numpy()) > MAX_OPACITY_LOGIT
+    return {"mean": far, "scale": huge & ~far, "opacity": opaque & ~far & ~huge}
+
+
+def drop_absurd(scene: GaussianScene, world_map: dict[str, Any] | None = None, source: str = "scene"
+                ) -> tuple[GaussianScene, np.ndarray, dict[str, int]]:
+    """``scene`` without its absurd Gaussians (``absurd_gaussians``); a warning line counts them per reason.
+
+    Args:
+        scene: the Gaussians.
+        world_map: map.json's content, or None.
+        source: what the Gaussians came from, for the messages (a file name).
+
+    Returns:
+        ``(kept scene, keep [N] bool, {reason: count})``: the scene itself, all True and ``{}`` when none is absurd;
+        the kept Gaussians keep their order and values.
+
+    Raises:
+        BundleError: every Gaussian is absurd, or more than ``MAX_DROPPED_FRACTION`` of them are.
+    """
+    absurd = absurd_gaussians(scene, world_map)
+    keep = ~np.logical_or.reduce(list(absurd.values()), axis=0)
+    counts = {reason: int(mask.sum()) for reason, mask in absurd.items() if mask.any()}
+    if not counts:
+        return scene, keep, {}
+    n, dropped = len(scene), len(scene) - int(keep.sum())
+    why = ", ".join(f"{count} with {_REASONS[reason]}" for reason, count in counts.items())
+    if dropped == n or dropped > MAX_DROPPED_FRACTION * n:
+        verdict = "none is usable" if dropped == n else f"more than {MAX_DROPPED_FRACTION:.0%}"
+        raise BundleError(f"{source}: {dropped} of {n} Gaussians are absurd ({why}); {verdict}, so the scene is "
+                          f"refused as corrupt")
+    log.warning("%s: dropped %d of %d absurd Gaussian(s): %s", source, dropped, n, why)
+    return scene.subset(torch.from_numpy(keep).to(scene.means.device)), keep, counts
+
+
 @dataclass
 class Bundle:
     """A trained scene: Gaussians, the rig (with its BEV spec), the world map, metadata, optional visibility grid.
@@ -77,6 +205,7 @@ class Bundle:
         meta: bundle.json without its ``version``.
         visibility: per-region visibility grid, or None.
         poses: poses.json's content, or None.
+        dropped: absurd Gaussians ``load`` dropped, per reason (``drop_absurd``); empty when none was. Not saved.
 
     Raises:
         BundleError: the scene's shapes or values are invalid (``GaussianScene.validate``).
@@ -88,6 +217,7 @@ class Bundle:
     meta: dict[str, Any] = field(default_factory=dict)
     visibility: VisibilityGrid | None = None
     poses: dict[str, Any] | None = None
+    dropped: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         """Validate the scene once, as it is loaded or built."""
@@ -160,12 +290,14 @@ def load(directory: str | Path) -> Bundle:
         directory: the bundle folder.
 
     Returns:
-        The bundle, its scene validated.
+        The bundle, its scene validated and without its absurd Gaussians (``drop_absurd``, counted in
+        ``dropped``; a visibility grid is renumbered to match).
 
     Raises:
         BundleError: the folder or a required file (gaussians.ply, rig.json, bundle.json) is missing, the version
-            is not ``BUNDLE_VERSION``, a file is unreadable or points outside the folder, or the visibility grid
-            does not fit the scene.
+            is not ``BUNDLE_VERSION``, a file is unreadable or points outside the folder, the visibility grid
+            does not fit the scene, the map's garage is malformed, or every Gaussian or more than
+            ``MAX_DROPPED_FRACTION`` of them are absurd.
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -185,7 +317,21 @@ def load(directory: str | Path) -> Bundle:
     world_map = _read_json(directory / MAP) if _inside(directory, MAP, "file").is_file() else None
     poses = _read_json(directory / POSES) if _inside(directory, POSES, "file").is_file() else None
     meta.pop("version")
-    return Bundle(scene, rig, world_map, meta, _load_visibility(directory, meta.get("visibility"), len(scene)), poses)
+    grid = _load_visibility(directory, meta.get("visibility"), len(scene))
+    scene, keep, dropped = drop_absurd(scene, world_map, str(directory / GAUSSIANS))
+    if dropped and grid is not None:
+        grid = _renumbered(grid, keep)
+    return Bundle(scene, rig, world_map, meta, grid, poses, dropped)
+
+
+def _renumbered(grid: VisibilityGrid, keep: np.ndarray) -> VisibilityGrid:
+    """``grid`` naming only the kept Gaussians, by their index among them (ascending order within a cell holds)."""
+    kept = keep[grid.indices]
+    cell_of_entry = np.repeat(np.arange(grid.nx * grid.ny), np.diff(grid.offsets))
+    counts = np.bincount(cell_of_entry[kept], minlength=grid.nx * grid.ny)
+    new_index = np.cumsum(keep) - 1
+    return replace(grid, offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                   indices=new_index[grid.indices[kept]].astype(np.int32))
 
 
 def _load_visibility(directory: Path, name: Any, n_gaussians: int) -> VisibilityGrid | None:

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .bundle import Bundle
+from .bundle import Bundle, drop_absurd
 from .bundle import save as save_bundle
 from .data import DatasetLayout
 from .fileio import atomic_directory
@@ -167,11 +167,13 @@ def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame:
         overwrite: replace an existing ``output``.
 
     Returns:
-        The bundle as written: Gaussians in Morton order, ``meta["ply_import"]`` recording the inputs and
-        ``T_parksim_ply``.
+        The bundle as written: Gaussians in Morton order without the absurd ones (``parksim.bundle.drop_absurd``,
+        in ParkSim's frame), ``meta["ply_import"]`` recording the inputs, ``T_parksim_ply`` and ``dropped`` (count
+        per reason).
 
     Raises:
         ValueError: a transform that is not a similarity, an unknown frame, unreadable JSON.
+        parksim.bundle.BundleError: every Gaussian, or more than ``MAX_DROPPED_FRACTION`` of them, is absurd.
         parksim.gaussians.PLYFormatError: a missing property, a non-finite value, no Gaussians.
         parksim.rig.CalibrationError: no or a bad rig.
         FileExistsError: ``output`` exists and ``overwrite`` is False.
@@ -188,12 +190,12 @@ def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame:
     if world_map is not None:
         world_map = Path(world_map)
         map_data = _read_object(DatasetLayout(world_map).map if world_map.is_dir() else world_map)
-    scene = read_ply(ply, T)
+    scene, _, dropped = drop_absurd(read_ply(ply, T), map_data, str(ply))
     meta = {"source": f"third-party 3DGS PLY {ply.resolve()}", "gaussians": len(scene), "sh_degree": scene.sh_degree,
             "ply_import": {"ply": str(ply.resolve()), "frame": frame,
                            "transform": None if transform is None else np.asarray(transform).tolist(),
                            "dataparser_transform": None if dataparser is None else dataparser.tolist(),
-                           "T_parksim_ply": T.tolist()},
+                           "T_parksim_ply": T.tolist(), "dropped": dropped},
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     bundle = Bundle(scene.spatially_sorted(), rig_model, map_data, meta)
     with atomic_directory(output, overwrite=overwrite) as tmp:

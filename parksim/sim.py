@@ -74,8 +74,14 @@ class LocalSim:
         return cls(Path(directory), Path(directory).name, device)
 
     def _bounds(self) -> dict[str, list[float]]:
-        """Scene extent (m): the map's garage floor and height, else the 1st-99th percentile of the means that lie
-        within the scene's robust extent (``parksim.bundle.absurd_gaussians``), so outliers cannot widen it."""
+        """Scene extent (m): the map's garage box, else robust statistics of the Gaussian means.
+
+        Without a garage: the 1st-99th percentile of the means that lie within the scene's robust extent
+        (``parksim.bundle.absurd_gaussians``), so outliers cannot widen it.
+
+        Returns:
+            ``{"x": [lo, hi], "y": [lo, hi], "z": [lo, hi]}`` in metres.
+        """
         import torch
 
         from .bundle import absurd_gaussians, garage_box
