@@ -164,7 +164,7 @@ class BatchRenderVectorEnv(_ParkVectorEnv):
         if (server is None) == (bundle is None):
             raise ValueError("BatchRenderVectorEnv renders through a server or a bundle: give server=<URL> or "
                              "bundle=<folder>, not both")
-        if bundle is not None:
+        if server is None:
             from .sim import LocalSim
 
             self.sim: RemoteSim | LocalSim = LocalSim(bundle, device=device or "auto")
