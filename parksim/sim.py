@@ -200,15 +200,17 @@ class LocalSim:
 
         Returns:
             JSON values: ``id``, ``gaussians`` (count), ``cameras``, ``rig``, ``bev`` spec, ``bounds`` (m),
-            ``map``, ``meta``, ``recorded_path`` (None for a bundle without one) and ``footprint``, the ego's
-            ``VehicleParams.extent`` as the env drives it.
+            ``map``, ``meta``, ``recorded_path`` (None for a bundle without one), ``footprint``, the ego's
+            ``VehicleParams.extent`` as the env drives it, and ``dropped``, the absurd Gaussians dropped on load
+            per reason (``Bundle.dropped``).
         """
         from .vehicle import VehicleParams
 
         b = self.bundle
         return {"id": self.id, "gaussians": len(b.scene), "cameras": self.cameras, "rig": b.rig.to_dict(),
                 "bev": b.rig.bev.to_dict(), "bounds": self.bounds, "map": b.map, "meta": b.meta,
-                "recorded_path": b.meta.get("recorded_path"), "footprint": list(VehicleParams().extent)}
+                "recorded_path": b.meta.get("recorded_path"), "footprint": list(VehicleParams().extent),
+                "dropped": dict(b.dropped)}
 
     def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
                scale: float = 1.0, depth: bool = False) -> Frame:

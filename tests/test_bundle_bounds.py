@@ -115,7 +115,9 @@ def test_outliers_without_a_map_do_not_widen_the_pose_bounds(clean: Path, tmp_pa
             check_pose(s, Pose(x=1e29, y=0.0, yaw=0.0), Settings())
     with TestClient(create_app(folder.parent, Settings())) as client:
         r = client.get("/render", params={"pose": "1e29,0,0", "cameras": "front"})
+        info = client.get("/scenes/outliers").json()
     assert r.status_code == 422 and "x must be in" in r.json()["detail"], r.text
+    assert info["dropped"] == {"mean": 6} and info["gaussians"] == N
 
 
 def test_a_scene_of_absurd_gaussians_is_refused_in_one_line(clean: Path, tmp_path: Path) -> None:

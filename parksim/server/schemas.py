@@ -189,6 +189,8 @@ class SceneInfo(BaseModel):
                                                     "[[x, y, yaw], ...] (m, rad; at most 256 evenly spaced frames): "
                                                     "renders are sharpest near it; None when the bundle has none")
     footprint: list[float] = Field(description="ego body in the vehicle frame (m): [x_min, x_max, y_min, y_max]")
+    dropped: dict[str, int] = Field(default_factory=dict, description="absurd Gaussians dropped when the bundle "
+                                    "loaded, per reason (mean, scale, opacity); empty when none was")
 
 
 class Health(BaseModel):
