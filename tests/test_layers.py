@@ -29,7 +29,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("render", ("render", "ipm", "_ipm_kernels", "sh_rotation", "ply_3dgs")),
     ("sources", ("synth", "importers")),
     ("recon", ("recon", "compact", "sim")),
-    ("serve", ("server", "client")),
+    ("serve", ("server", "client", "ray_proxy")),
     ("drive", ("env", "vector_env", "planners")),
     ("bench", ("bench",)),
     ("commands", ("commands",)),

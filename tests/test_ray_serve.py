@@ -1,5 +1,6 @@
 """``parksim serve --ray``: the Ray Serve deployment answers as the single-process app does (same images, same 4xx
-status and detail), follows --replicas, stops on Ctrl-C; without Ray the command says what to install."""
+status and detail), follows --replicas, answers the requests of a killed replica 503 JSON, stops on Ctrl-C; without
+Ray the command says what to install."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -18,6 +22,7 @@ from fastapi.testclient import TestClient
 from parksim.bench.procs import free_port
 from parksim.cli import main
 from parksim.frames import decode_npz
+from parksim.ray_proxy import ReplicaLost
 from parksim.server import Settings, create_app
 from sim_fixtures import make_bundle
 
@@ -49,18 +54,20 @@ def cluster():
 
 @pytest.fixture(scope="module")
 def served(cluster, bundle_dir, tmp_path_factory):
-    """``parksim serve --ray`` joined to the module's cluster with two replicas and an API key; (process, URL, its
-    stderr log). Python's fault handler is on in it, so SIGABRT writes every thread's stack to that log."""
+    """``parksim serve --ray`` joined to the module's cluster with two replicas and an API key, once it says it
+    serves (both replicas loaded); (process, URL, its stderr log). Python's fault handler is on in it, so SIGABRT
+    writes every thread's stack to that log."""
     port = free_port()
     log = tmp_path_factory.mktemp("log") / "serve.err"
-    with log.open("w") as err:
+    out = log.with_name("serve.out")
+    with log.open("w") as err, out.open("w") as said:
         proc = subprocess.Popen([PARKSIM, "serve", "--ray", "--address", cluster, "--replicas", "2", "--api-key", KEY,
                                  "--scenes", str(bundle_dir.parent), "--port", str(port)],
-                                stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+                                stdout=said, stderr=err, env={**os.environ, "PYTHONFAULTHANDLER": "1"})
     base = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 240
-        while not _answers(base):
+        while "serving on" not in out.read_text():
             assert proc.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.5)
         yield proc, base, log
@@ -134,8 +141,85 @@ def test_scenes_health_and_viewer_answer(both):
 
 
 def test_replicas_follow_the_flag(served):
-    deployment = serve.status().applications["parksim"].deployments["SimReplica"]
-    assert deployment.replica_states == {"RUNNING": 2}
+    assert _replica_states() == {"RUNNING": 2}
+
+
+def test_a_killed_replica_answers_its_requests_503_json(served):
+    """A replica killed by PID under load: the requests it held get the documented 503 JSON with Retry-After, none
+    500 text/plain, none a broken connection; Serve starts a new replica, which then serves."""
+    base = served[1]
+    victim = _replica_pids()[0]
+    replies: list[httpx.Response] = []
+    failures: list[httpx.HTTPError] = []
+    stop = threading.Event()
+
+    def client() -> None:
+        with httpx.Client(base_url=base, timeout=120) as c:   # a first render may compile kernels (~30 s)
+            while not stop.is_set():
+                try:
+                    replies.append(c.get("/render", params={"pose": POSE, "scale": 0.5, "bev": "on"}, headers=AUTH))
+                except httpx.HTTPError as e:
+                    failures.append(e)
+
+    threads = [threading.Thread(target=client) for _ in range(8)]   # several per replica; fewer than one's capacity (9)
+    for t in threads:
+        t.start()
+    try:
+        _until(lambda: len(replies) >= 6, 240, "the deployment answered no renders")
+        killed_at = len(replies)
+        os.kill(victim, signal.SIGKILL)
+        _until(lambda: len(replies) >= killed_at + 12, 120, "the other replica stopped answering")
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(120)
+    codes = Counter(r.status_code for r in replies)
+    assert not failures and set(codes) <= {200, 503} and codes[503] >= 1, (codes, failures[:3])
+    for r in (r for r in replies if r.status_code == 503):
+        assert (r.headers["content-type"], r.headers["retry-after"]) == ("application/json", "1")
+        assert "replica serving this request stopped" in r.json()["detail"]
+    _until(lambda: len(pids := _replica_pids()) == 2 and victim not in pids and _replica_states() == {"RUNNING": 2},
+           240, "Serve did not restart the replica")
+    for _ in range(4):   # and the deployment serves again
+        _ok(httpx.get(f"{base}/render", params={"pose": POSE, "scale": 0.25}, headers=AUTH, timeout=120))
+
+
+def test_replica_lost_leaves_started_replies_alone():
+    """The proxy middleware rewrites only a request the proxy returned from in silence; an app's own error reply
+    (here a 500 JSON) passes through as it was."""
+    async def silent(scope, receive, send):   # what Serve's proxy does after a RayActorError
+        return None
+
+    async def own_error(scope, receive, send):
+        await send({"type": "http.response.start", "status": 500, "headers": [(b"content-type", b"application/json")]})
+        await send({"type": "http.response.body", "body": b'{"detail": "x"}'})
+
+    lost = TestClient(ReplicaLost(silent, retry_after_s=3)).get("/render")
+    assert (lost.status_code, lost.headers["retry-after"], lost.headers["content-type"]) == (503, "3",
+                                                                                            "application/json")
+    assert lost.json() == {"detail": "the Ray Serve replica serving this request stopped before it answered (Serve "
+                                     "restarts it): retry after 3 s"}
+    kept = TestClient(ReplicaLost(own_error)).get("/render")
+    assert (kept.status_code, kept.json(), "retry-after" in kept.headers) == (500, {"detail": "x"}, False)
+
+
+def _replica_pids() -> list[int]:
+    """PIDs of the live SimReplica actors (Ray's public state API needs the dashboard, which this cluster lacks)."""
+    from ray._private import state
+    return sorted(a["Pid"] for a in state.actors().values()
+                  if a["ActorClassName"] == "ServeReplica:parksim:SimReplica" and a["State"] == "ALIVE")
+
+
+def _replica_states() -> dict[str, int]:
+    return serve.status().applications["parksim"].deployments["SimReplica"].replica_states
+
+
+def _until(done: Callable[[], bool], timeout_s: float, failure: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        if time.monotonic() > deadline:
+            pytest.fail(f"{failure} within {timeout_s:.0f} s")
+        time.sleep(0.2)
 
 
 def test_ctrl_c_takes_the_deployment_down(served):

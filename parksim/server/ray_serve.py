@@ -21,6 +21,7 @@ from ray.exceptions import RayError
 from ray.serve.deployment import Application
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from ..ray_proxy import proxy_env
 from .app import create_app
 from .settings import Settings
 
@@ -67,17 +68,18 @@ class PicklableBodies:
 @dataclass(frozen=True)
 class Scaling:
     """A fixed number of ``replicas``, or ``autoscale=(min, max)``; each replica reserves ``cpus`` Ray CPUs and
-    renders with that many threads."""
+    renders with that many threads, and ``gpus`` Ray GPUs (a fraction shares one GPU; 0: none visible to it)."""
 
     replicas: int = 1
     autoscale: tuple[int, int] | None = None
     cpus: int = 1
+    gpus: float = 0.0
 
     def options(self, settings: Settings) -> dict[str, Any]:
-        """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs and thread counts per replica."""
+        """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs, GPUs and threads per replica."""
         threads = str(self.cpus)
         out: dict[str, Any] = {
-            "ray_actor_options": {"num_cpus": self.cpus,
+            "ray_actor_options": {"num_cpus": self.cpus, "num_gpus": self.gpus,
                                   "runtime_env": {"env_vars": {"OMP_NUM_THREADS": threads,
                                                                "NUMBA_NUM_THREADS": threads}}},
             "max_ongoing_requests": settings.workers + settings.queue_size + HEADROOM,
@@ -101,14 +103,18 @@ def start(scenes: str | Path, settings: Settings, scaling: Scaling, host: str, p
           address: str | None = None, strict: bool = False) -> None:
     """Start Ray on this machine's cores, or join the cluster at ``address``; start Serve's HTTP proxy on
     ``host:port`` and deploy. Returns once every replica has loaded the scenes; ``ValueError`` with one line when
-    the cluster cannot be reached or a replica fails to start, with everything started here taken down again."""
+    the cluster cannot be reached or a replica fails to start, with everything started here taken down again.
+
+    This driver's job carries :func:`parksim.ray_proxy.proxy_env`, which the Serve controller and the proxies it
+    starts inherit: a request whose replica dies under it gets 503 JSON with ``Retry-After``, not 500 text. A Serve
+    that already runs on the cluster keeps the proxies it has (see docs/ray.md)."""
     logging.getLogger("ray.serve").setLevel(logging.WARNING)
     if address is not None:
         check_reachable(address)
     try:   # replica logs stay in Ray's session log folder (log_to_driver=False)
         ray.init(address=address, num_cpus=(os.cpu_count() or 1) if address is None else None,
                  include_dashboard=False if address is None else None, logging_level=logging.ERROR,
-                 log_to_driver=False)
+                 log_to_driver=False, runtime_env={"env_vars": proxy_env(settings.retry_after_s)})
     except ConnectionError as e:
         raise ValueError(f"cannot join the Ray cluster at {address}: {str(e).splitlines()[0]}") from None
     try:
