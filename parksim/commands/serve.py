@@ -42,6 +42,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="largest reply one request may ask for, counted before rendering; larger: 413 (default 64)")
     p.add_argument("--reply-budget-mib", type=number(0, open_low=True),
                    help="reply MiB rendered or being sent at once over all clients; beyond: 503 (default 256)")
+    p.add_argument("--gather", choices=("auto", "on", "off"),
+                   help="render concurrent single-pose GET requests for the same views together, as one batch "
+                        "(default auto: for scenes on a GPU, where a batch costs little more than one render)")
+    p.add_argument("--gather-window-ms", type=number(0), metavar="MS",
+                   help="how long a request waits for others to render with (default 2)")
     p.add_argument("--device", default="auto",
                    help=DEVICE_HELP + "; with --ray each replica resolves it on its node (cuda needs --replica-gpus)")
     ray = p.add_argument_group("Ray Serve (needs parksim[ray]; docs/ray.md)",
@@ -84,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
     settings = Settings.from_env(api_key=api_key, workers=args.workers, queue_size=args.queue_size,
                                  max_scale=args.max_scale, max_batch=args.max_batch,
                                  max_reply_bytes=_mib(args.max_reply_mib),
-                                 reply_budget_bytes=_mib(args.reply_budget_mib), device=args.device)
+                                 reply_budget_bytes=_mib(args.reply_budget_mib), device=args.device,
+                                 gather=args.gather, gather_window_ms=args.gather_window_ms)
     if args.ray:
         serve_ray(args.scenes, settings, args.host, args.port, args.replicas or 1, args.autoscale,
                   args.replica_cpus or 1, args.address, strict=args.strict, replica_gpus=args.replica_gpus or 0.0)

@@ -30,6 +30,7 @@ from parksim.sim import LocalSim
 from .auth import host_name
 from .budget import BudgetFull, ReplyBudget, ReplyTooLarge
 from .docs import install_docs
+from .gather import Gatherer
 from .metrics import Metrics
 from .pool import PoolBusy, RenderPool
 from .routes import VIEWER_DIR, protected, router
@@ -184,9 +185,11 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     pool = RenderPool(settings.workers, settings.queue_size, settings.render_timeout_s, settings.retry_after_s)
     budget = ReplyBudget(settings.reply_budget_bytes, settings.retry_after_s)
     metrics = Metrics(pool.stats, budget.stats)
+    gatherer = Gatherer(pool, settings.gather_window_ms / 1000, settings.max_batch, settings.jpeg_quality)
     # What parksim.server.deps hands to the handlers:
     app.state.settings, app.state.registry, app.state.pool, app.state.budget, app.state.metrics = (
         settings, registry, pool, budget, metrics)
+    app.state.gatherer = gatherer
     _install_errors(app)
     _install_middleware(app, settings, metrics)
     app.include_router(router)

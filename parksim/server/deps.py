@@ -45,9 +45,10 @@ BudgetDep = Annotated[ReplyBudget, Depends(get_budget)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
-def get_renderer(pool: PoolDep, budget: BudgetDep, metrics: MetricsDep, settings: SettingsDep) -> Renderer:
+def get_renderer(request: Request, pool: PoolDep, budget: BudgetDep, metrics: MetricsDep, settings: SettingsDep
+                 ) -> Renderer:
     """The render pool, reply budget and metrics a render handler answers through."""
-    return Renderer(pool, budget, metrics, settings.jpeg_quality)
+    return Renderer(pool, budget, metrics, settings.jpeg_quality, request.app.state.gatherer, settings.gather)
 
 
 RendererDep = Annotated[Renderer, Depends(get_renderer)]

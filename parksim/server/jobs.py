@@ -21,7 +21,7 @@ from .scenes import SceneRegistry, check_pose
 from .schemas import Pose, RenderMeta
 from .settings import Settings
 
-__all__ = ["RenderJob", "Reply", "MEDIA_TYPES"]
+__all__ = ["RenderJob", "Reply", "MEDIA_TYPES", "render_together"]
 
 MEDIA_TYPES = {"npz": "application/x-npz", "png": "image/png", "jpeg": "image/jpeg"}
 
@@ -98,10 +98,16 @@ class RenderJob:
         """Render every pose (together: ``LocalSim.render_batch``) and encode (runs on a pool thread)."""
         frames = self.sim.render_batch([_pose_values(p) for p in self.poses], self.cameras, self.bev, self.scale,
                                        self.depth)
+        body, timings = self.encode(frames, jpeg_quality)
+        return body, timings, frames
+
+    def encode(self, frames: list[Frame], jpeg_quality: int, gathered: int = 1) -> tuple[bytes, dict[str, float]]:
+        """This job's reply body from its rendered ``frames`` (one per pose), and its stage timings (s);
+        ``gathered`` requests shared the render."""
         timings = {k: sum(f.timings.get(k, 0.0) for f in frames) for k in ("views", "bev")}
         start = time.perf_counter()
         if self.fmt == "npz":
-            body = encode_npz(frames, self._meta(frames[0], timings).model_dump(), self.batch)
+            body = encode_npz(frames, self._meta(frames[0], timings, gathered).model_dump(), self.batch)
         else:
             f = frames[0]
             image = f.bev if self.bev else f.images[self.cameras[0]]
@@ -109,14 +115,15 @@ class RenderJob:
                 raise RuntimeError(f"scene {self.sim.id}: a BEV was asked for but the render holds none")
             body = encode_image(image, self.fmt, jpeg_quality)
         timings["encode"] = time.perf_counter() - start
-        return body, timings, frames
+        return body, timings
 
-    def _meta(self, frame: Frame, timings: dict[str, float]) -> RenderMeta:
+    def _meta(self, frame: Frame, timings: dict[str, float], gathered: int = 1) -> RenderMeta:
         sizes = {n: [int(a.shape[1]), int(a.shape[0])] for n, a in frame.images.items()}
         if frame.bev is not None:
             sizes["bev"] = [int(frame.bev.shape[1]), int(frame.bev.shape[0])]
         return RenderMeta(scene=self.sim.id, poses=self.poses, cameras=self.cameras, bev=self.bev, scale=self.scale,
-                          sizes=sizes, timings_ms={k: round(v * 1000, 3) for k, v in timings.items()})
+                          sizes=sizes, timings_ms={k: round(v * 1000, 3) for k, v in timings.items()},
+                          gathered=gathered)
 
     async def run(self, pool: RenderPool, jpeg_quality: int) -> Reply:
         """Render and encode on ``pool``; the reply's metadata carries queue, views, bev and encode times."""
@@ -130,3 +137,24 @@ def _pose_values(pose: Pose) -> list[float]:
     if pose.z == 0 and pose.roll == 0 and pose.pitch == 0:
         return [pose.x, pose.y, pose.yaw]
     return pose.values()
+
+
+def render_together(jobs: list[RenderJob], jpeg_quality: int) -> list[Reply]:
+    """Single-pose jobs of one scene and view set rendered in one ``LocalSim.render_batch``, each encoded as its own
+    reply (runs on a pool thread; ``parksim.server.gather``).
+
+    Args:
+        jobs: jobs with one pose each and the same scene, cameras, BEV, scale and depth.
+        jpeg_quality: of single-view JPEG replies.
+
+    Returns:
+        One reply per job, in order; each job's timings are its share of the render, ``gathered`` the group's size.
+    """
+    first = jobs[0]
+    frames = first.sim.render_batch([_pose_values(job.poses[0]) for job in jobs], first.cameras, first.bev,
+                                    first.scale, first.depth)
+    replies = []
+    for job, frame in zip(jobs, frames):
+        body, timings = job.encode([frame], jpeg_quality, len(jobs))
+        replies.append(Reply(body, MEDIA_TYPES[job.fmt], job._meta(frame, timings, len(jobs))))
+    return replies

@@ -14,6 +14,7 @@ from fastapi.responses import Response
 from starlette.types import Receive, Scope, Send
 
 from .budget import ReplyBudget, Reservation
+from .gather import Gatherer
 from .jobs import RenderJob
 from .metrics import Metrics
 from .pool import RenderPool
@@ -47,18 +48,30 @@ class BudgetedResponse(Response):
 
 @dataclass(frozen=True)
 class Renderer:
-    """Runs jobs on the pool with their reply bytes reserved in the budget; records stage times."""
+    """Runs jobs on the pool with their reply bytes reserved in the budget; records stage times.
+
+    A single-pose job goes through ``gatherer`` (rendered together with concurrent ones) when ``gather`` is "on",
+    or "auto" and its scene is on a GPU.
+    """
 
     pool: RenderPool
     budget: ReplyBudget
     metrics: Metrics
     jpeg_quality: int
+    gatherer: Gatherer | None = None
+    gather: str = "off"
+
+    def _gathers(self, job: RenderJob) -> bool:
+        if self.gatherer is None or job.batch or len(job.poses) != 1 or self.gather == "off":
+            return False
+        return self.gather == "on" or job.sim.device.type == "cuda"
 
     async def respond(self, job: RenderJob) -> Response:
         """Render ``job`` and answer it; ``BudgetFull`` or ``PoolBusy`` (503) when there is no room for it now."""
         reservation = self.budget.reserve(job.reply_bytes)
         try:
-            reply = await job.run(self.pool, self.jpeg_quality)
+            reply = await (self.gatherer.run(job) if self.gatherer is not None and self._gathers(job)
+                           else job.run(self.pool, self.jpeg_quality))
         except BaseException:
             reservation.release()
             raise

@@ -147,6 +147,8 @@ class RenderMeta(BaseModel):
     scale: float
     sizes: dict[str, list[int]] = Field(description="[width, height] per returned view")
     timings_ms: dict[str, float] = Field(description="queue, views, bev, encode")
+    gathered: int = Field(1, description="requests rendered together with this one (parksim.server.gather): 1 when "
+                          "it was rendered alone")
 
 
 class SceneSummary(BaseModel):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
@@ -65,6 +66,10 @@ class Settings(BaseModel):
     allowed_hosts: tuple[str, ...] | None = Field(None, description="Host header names (port ignored) the server "
                                                   "answers to, others get 421; None: any. parksim serve sets the "
                                                   "loopback names and --host unless bound to 0.0.0.0 or ::")
+    gather: Literal["auto", "on", "off"] = Field("auto", description="render concurrent single-pose requests for "
+                                                 "the same views of a scene together (one batch): auto = for scenes "
+                                                 "on a GPU, where a batch costs little more than one render")
+    gather_window_ms: float = Field(2.0, ge=0, description="how long a request waits for others to render with")
     device: str = Field("auto", description="where the scenes render: auto, cpu or cuda[:N] "
                         "(parksim.device.resolve_device), resolved where the scenes load: by the server process, "
                         "or by each Ray Serve replica on its node")
