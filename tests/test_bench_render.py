@@ -1,5 +1,5 @@
-"""The renderer's suites (``parksim bench render``, ``projection``, ``rasterize``, ``ipm``, ``ut-accuracy``, ``gpu``)
-run ``--quick`` through the CLI and record what they measure; ``gpu`` refuses a machine without CUDA."""
+"""The renderer's suites (``parksim bench render``, ``projection``, ``rasterize``, ``ipm``, ``ut-accuracy``) run
+``--quick`` through the CLI and record what they measure; ``gpu`` has its own file (test_bench_gpu.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import math
 from pathlib import Path
 
 import pytest
-import torch
 
 from parksim.bench.record import Figure, Record, read_record
 from parksim.cli import main
@@ -131,22 +130,3 @@ def test_ut_accuracy_ranks_the_projections_against_monte_carlo(tmp_path):
     assert adaptive.goal == "<= 1.5x the 7-point UT"
     assert 0 < figures[f"visible Gaussians on the 19-point set, {scene}"].value < 100
 
-
-@pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device: the suite runs (next test)")
-def test_gpu_refuses_a_machine_without_cuda(tmp_path, capsys):
-    assert main(["bench", "gpu", "--quick", "--quiet", "--work", str(tmp_path)]) == 2
-    err = capsys.readouterr().err
-    assert err.startswith("parksim bench: error: no CUDA device: ") and err.count("\n") == 1
-    assert not (tmp_path / "data").exists() and not (tmp_path / "results").exists()   # refused before any work
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
-def test_gpu_times_gsplat_beside_the_cpu_path_and_checks_agreement(tiny_data, tmp_path):
-    pytest.importorskip("gsplat")
-    record = bench(tmp_path, "gpu", "--dataset", str(tiny_data))
-    timings = [f for f in record.figures if f.target.endswith(": gsplat on CUDA")]
-    assert len(timings) == 6 and all(timed(f) and f.reference is not None for f in timings)
-    agreement = [f for f in record.figures if "agreement" in f.target]
-    assert len(agreement) == 4 and all(f.better == "higher" for f in agreement)
-    for f in agreement:
-        assert f.value >= (45.0 if f.unit == "dB" else 99.9)

@@ -1,6 +1,6 @@
 """The speed issue's render cases, shared by ``parksim bench render`` (CPU, against a package copy) and
-``parksim bench gpu`` (gsplat on CUDA, against the CPU path): their sizes as options, their targets, and one
-timed render of a case (forward, or forward and backward of a fixed weighting of the images).
+``parksim bench gpu`` (ParkSim on CUDA, against the CPU path and gsplat's 3DGUT): their sizes as options, their
+targets, and one timed render of a case (forward, or forward and backward of a fixed weighting of the images).
 
 The scene is a dataset's surface points densified to N Gaussians (``parksim.bench.scenes.garage_scene``); the
 rig is the dataset's, scaled to the case's width, with a square BEV of ``bev_px`` over the rig's own extent; the

@@ -43,6 +43,9 @@ class EnvOptions:
     backends: list[str] = field(default_factory=lambda: list(BACKENDS), metadata={
         "help": f"vectorisations to measure, of {', '.join(BACKENDS)} (sync, the reference, always runs)",
         "quick": ["sync", "ray", "serve-ray"]})
+    device: str = field(default="cpu", metadata={
+        "help": "where sync's envs and serve's server render: cpu, cuda[:N] or auto (resolved here; Ray actors see no "
+                "GPU, so a CUDA device measures sync and serve only)"})
 
     def __post_init__(self) -> None:
         unknown = [b for b in self.backends if b not in BACKENDS]
@@ -101,16 +104,22 @@ class EnvSuite(Suite):
         import parksim.env  # noqa: F401  (registers ParkSim-v0)
 
         from ...bundle import load
+        from ...device import resolve_device
         from ..procs import local_ray, serve_bundle
         from ..serving import garage_bundle
 
+        device = resolve_device(options.device)   # a bad name or a missing GPU: refused before any work
+        cuda = device.type == "cuda"
+        if cuda and {"ray", "serve-ray"} & set(options.backends):
+            raise ValueError(f"--device {options.device}: the Ray backends render in actors that see no GPU; "
+                             "measure --backends sync,serve on CUDA")
         bundle = garage_bundle(context, options.preset, None, options.gaussians)
         rig = load(bundle).rig
         view: dict[str, Any] = {"cameras": rig.names, "bev": False, "scale": options.scale}
         sizes = sorted({(round(c.model.width * options.scale), round(c.model.height * options.scale))
                         for c in rig.cameras.values()})
         where = (f"ParkSim-v0 on {bundle.name}, {options.gaussians:,} Gaussians, {len(rig.names)} views at "
-                 + ", ".join(f"{w}x{h}" for w, h in sizes))
+                 + ", ".join(f"{w}x{h}" for w, h in sizes) + (", on CUDA" if cuda else ""))
         rows: dict[str, dict[int, dict[str, Any]]] = {}
 
         def measure_all(name: str, make: Callable[[int], Any]) -> None:
@@ -128,9 +137,9 @@ class EnvSuite(Suite):
         def vector(n: int, **source: Any) -> Any:
             return gym.make_vec("ParkSim-v0", n, **source, **view)
 
-        measure_all("sync", lambda n: vector(n, vectorization_mode="sync", bundle=bundle))
-        if "serve" in options.backends:
-            with serve_bundle(bundle) as server:
+        measure_all("sync", lambda n: vector(n, vectorization_mode="sync", bundle=bundle, device=str(device)))
+        if "serve" in options.backends:   # one POST /render carries every env's pose: --max-batch covers them
+            with serve_bundle(bundle, ["--device", str(device), "--max-batch", str(max(options.envs))]) as server:
                 measure_all("serve", lambda n: vector(n, backend="batch", server=server.base))
         if {"ray", "serve-ray"} & set(options.backends):
             import ray
@@ -146,7 +155,8 @@ class EnvSuite(Suite):
                             measure_all("serve-ray", lambda n: vector(n, backend="batch", server=server.base))
                     finally:
                         serve.shutdown()
-        return Outcome(_figures(rows, where), {"bundle": str(bundle), "view": view, "rows": rows})
+        return Outcome(_figures(rows, where), {"bundle": str(bundle), "view": view, "device": str(device),
+                                               "rows": rows})
 
 
 def _figures(rows: dict[str, dict[int, dict[str, Any]]], where: str) -> list[Figure]:
