@@ -8,7 +8,7 @@ STAMP   := $(VENV)/.installed
 # The public modules docs/api.md lists: on these, `make lint` also checks Google-style docstrings (every public
 # name documented, every argument in Args, Returns and Raises where the code returns and raises).
 # tests/test_api_docstrings.py checks that this list covers every name of api.md's table.
-API_MODULES := parksim/camera parksim/rig.py parksim/geometry.py parksim/ipm.py parksim/gaussians.py \
+API_MODULES := parksim/camera parksim/device.py parksim/rig.py parksim/geometry.py parksim/ipm.py parksim/gaussians.py \
                parksim/render/__init__.py parksim/render/api.py parksim/render/projection.py \
                parksim/render/rasterize/__init__.py parksim/render/rasterize/reference.py \
                parksim/render/rasterize/constants.py parksim/data parksim/bundle.py parksim/sim.py \
