@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -25,6 +25,9 @@ from gymnasium import spaces
 from .client import RemoteSim
 from .frames import Frame
 from .sim import LocalSim
+
+if TYPE_CHECKING:
+    from .ray_sim import RaySim
 from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, step, wrap_angle
 
 __all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error", "to_controls", "to_action",
@@ -124,7 +127,7 @@ class ParkingEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, bundle: str | Path | Any = None, server: str | None = None, scene: str | None = None,
-                 api_key: str | None = None, sim: LocalSim | RemoteSim | None = None,
+                 api_key: str | None = None, sim: LocalSim | RemoteSim | RaySim | None = None,
                  cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 0.25,
                  privileged: bool = False, pos_tol: float = 0.35, yaw_tol: float = 0.15,
                  vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None,
@@ -162,7 +165,7 @@ class ParkingEnv(gym.Env):
         if bundle is None and device not in (None, "auto"):
             raise ValueError(f"device={device!r} applies to bundle= only: with server= or sim= the frames are "
                              "rendered on that source's own device (parksim serve --device)")
-        self.sim: LocalSim | RemoteSim = (sim if sim is not None else LocalSim(bundle, device=device or "auto")
+        self.sim: LocalSim | RemoteSim | RaySim = (sim if sim is not None else LocalSim(bundle, device=device or "auto")
                                           if server is None else RemoteSim(server, scene=scene, api_key=api_key))
         info = self.sim.info()
         if not info.get("map") or not free_slots(info["map"]):

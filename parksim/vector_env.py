@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium import spaces
@@ -22,6 +22,10 @@ from gymnasium.vector.utils import batch_space, concatenate, create_empty_array
 from .client import RemoteSim
 from .env import ParkingEnv
 from .frames import Frame
+
+if TYPE_CHECKING:
+    from .ray_sim import RaySim
+    from .sim import LocalSim
 
 __all__ = ["RayVectorEnv", "BatchRenderVectorEnv", "EnvHost", "make_vector_env", "BACKENDS"]
 
@@ -156,18 +160,27 @@ class RayVectorEnv(_ParkVectorEnv):
 class BatchRenderVectorEnv(_ParkVectorEnv):
     """``num_envs`` ``ParkingEnv``s in this process sharing one simulator: each step renders every pose at once,
     in one ``POST /render`` to ``server`` (``parksim serve`` or its Ray Serve deployment) or, with ``bundle``, in
-    one ``LocalSim.render_batch`` on ``device``."""
+    one ``LocalSim.render_batch`` on ``device``: in this process, or with ``render_actor`` in a Ray actor
+    (``RaySim``) reserving ``render_gpus`` GPUs, shared by every vector env that gives the same actor name."""
 
     def __init__(self, num_envs: int, server: str | None = None, scene: str | None = None,
                  api_key: str | None = None, max_episode_steps: int | None = None, bundle: Any = None,
-                 device: str | None = None, **env_kwargs: Any) -> None:
+                 device: str | None = None, render_actor: str | bool | None = None, render_gpus: float = 0.0,
+                 render_cpus: float = 1.0, **env_kwargs: Any) -> None:
         if (server is None) == (bundle is None):
             raise ValueError("BatchRenderVectorEnv renders through a server or a bundle: give server=<URL> or "
                              "bundle=<folder>, not both")
-        if server is None:
+        if render_actor and server is not None:
+            raise ValueError("render_actor= renders a bundle in a Ray actor: give bundle=, not server=")
+        if render_actor:
+            from .ray_sim import RaySim
+
+            name = render_actor if isinstance(render_actor, str) else None
+            self.sim: RemoteSim | LocalSim | RaySim = RaySim(bundle, device or "auto", render_gpus, render_cpus, name)
+        elif server is None:
             from .sim import LocalSim
 
-            self.sim: RemoteSim | LocalSim = LocalSim(bundle, device=device or "auto")
+            self.sim = LocalSim(bundle, device=device or "auto")
         else:
             if device not in (None, "auto"):
                 raise ValueError(f"device={device!r} applies to bundle= only: a server renders on its own device")

@@ -30,7 +30,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("sources", ("synth", "importers")),
     ("recon", ("recon", "compact", "sim")),
     ("serve", ("server", "client", "ray_proxy")),
-    ("drive", ("env", "vector_env", "planners")),
+    ("drive", ("env", "vector_env", "ray_sim", "planners")),
     ("bench", ("bench",)),
     ("commands", ("commands",)),
     ("cli", ("cli",)),

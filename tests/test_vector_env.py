@@ -122,6 +122,31 @@ def test_batch_render_env_in_process_matches_the_ray_env(ray_envs, bundle_dir):
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
 
 
+def test_vector_envs_share_one_render_actor(ray_envs, bundle_dir):
+    """render_actor=NAME: the poses of a step go to one Ray actor holding the bundle (a GPU one when it reserves
+    GPUs), in one render_batch call; a second vector env naming it uses the same actor; observations as the Ray
+    env's single envs."""
+    from parksim.ray_sim import RaySim
+
+    acts = _actions(LIMIT + 2)
+    first = make_vector_env(N, backend="batch", bundle=str(bundle_dir), render_actor="garage-renderer",
+                            render_cpus=0, device="cpu", max_episode_steps=LIMIT, **KWARGS)
+    second = make_vector_env(2, backend="batch", bundle=str(bundle_dir), render_actor="garage-renderer",
+                             render_cpus=0, max_episode_steps=LIMIT, **KWARGS)
+    assert isinstance(first.sim, RaySim) and first.sim.device == "cpu"
+    assert first.sim.actor._actor_id == second.sim.actor._actor_id
+    results = [[envs.reset(seed=SEED)[0]] + [envs.step(a)[0] for a in acts] for envs in (first, ray_envs)]
+    for a, b in zip(*results):
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    second.reset(seed=SEED)
+    for envs in (first, second):
+        envs.close()
+    ray.kill(first.sim.actor)
+    with pytest.raises(ValueError, match="render actor did not start"):
+        RaySim(bundle_dir, device="cuda:7", cpus=0)
+
+
 def test_sync_mode_still_vectorises_in_process(bundle_dir):
     envs = gym.make_vec("ParkSim-v0", num_envs=2, vectorization_mode="sync", bundle=bundle_dir, cameras=[])
     obs, _ = envs.reset(seed=SEED)
