@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ..device import DEVICE_HELP
 from .argtypes import integer, number
 
 if TYPE_CHECKING:
@@ -28,12 +29,17 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="folder of scene bundles, e.g. scenes/")
     p.add_argument("--config", default="parkgaussian",
                    help="training config for every scene: a YAML path or a packaged preset name (tiny, demo, "
-                        "cpu_fast, cpu_slot_aware, parkgaussian)")
+                        "cpu_fast, cpu_slot_aware, gpu_fast, gpu_paper, parkgaussian)")
     p.add_argument("--address", help="join the Ray cluster at this address (e.g. auto, or HEAD_IP:6379); datasets "
                    "and SCENES must be on a file system every node sees")
     p.add_argument("--cpus-per-task", type=integer(1),
                    help="Ray CPUs (and torch threads) per scene (default: the cluster's CPUs shared by the scenes "
                         "to train, at most one node's)")
+    p.add_argument("--device", help=f"{DEVICE_HELP}; default: the config's run.device. Each task resolves it on its "
+                   "node (without --address it is checked here first); a task's GPUs are numbered from cuda:0")
+    p.add_argument("--gpus-per-task", type=number(0), default=0.0,
+                   help="Ray GPUs each scene reserves, fractions allowed (0.5: two scenes share one GPU); a cuda "
+                        "device needs > 0 (default 0)")
     p.add_argument("--retries", type=integer(0, 10), default=1, help="retries of a failed scene")
     p.add_argument("--progress-every", type=number(0), default=10.0, metavar="SECONDS",
                    help="print each scene's iteration and PSNR at most this often")
@@ -61,15 +67,19 @@ def run(args: argparse.Namespace) -> int:
     from parksim.recon.batch import plan_scenes, ray_session, run_batch
     from parksim.recon.config import load_config
 
+    from ..device import resolve_device
     from .outputs import check_output_folder
 
-    load_config(args.config)
+    config = load_config(args.config)
+    if args.address is None:   # a local Ray trains here: a bad device name or a missing GPU fails now, in one line
+        resolve_device(args.device or config.run.device)
     check_output_folder(args.output)
     scenes = plan_scenes(args.data, args.output)
     with ray_session(args.address):
         outcomes = run_batch(scenes, args.config, args.cpus_per_task, args.retries,
                              report=lambda line: print(line, file=sys.stderr, flush=True),
-                             progress_every=args.progress_every)
+                             progress_every=args.progress_every, device=args.device,
+                             gpus_per_task=args.gpus_per_task)
     print(summary_table(outcomes))
     failed = [o.name for o in outcomes if o.status == "failed"]
     if failed:

@@ -5,8 +5,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from ..device import DEVICE_HELP
 from .argtypes import integer, number
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["add_parser", "run"]
 
@@ -56,6 +61,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="skip the off-path split (DATA/offpath/) even when the dataset has one")
     p.add_argument("--panel-frames", type=integer(0), default=3, help="test frames shown in each detection panel")
     p.add_argument("--backend", default="auto", choices=["auto", "torch", "numba"], help="rasterizer backend")
+    p.add_argument("--device", default="auto", help=f"{DEVICE_HELP}; renders, scores and LPIPS run there, the "
+                   "detectors on the CPU")
     p.add_argument("--projection", choices=["ut", "ewa"],
                    help="render with this projection instead of the one the scene was trained with (which is what "
                         "`parksim serve` renders with); one SCENE without --detector only")
@@ -65,7 +72,16 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def _tables(args: argparse.Namespace, out: Path) -> int:
+def _announce(device: torch.device) -> None:
+    """The one stderr line saying where the scenes render, once the arguments are checked and before any work."""
+    import sys
+
+    from ..device import describe_device
+
+    print(f"evaluating on {describe_device(device)}", file=sys.stderr)
+
+
+def _tables(args: argparse.Namespace, out: Path, device: torch.device) -> int:
     from parksim.recon.detectors import DecodeOptions
     from parksim.recon.detectors.protocols import get_protocol
     from parksim.recon.paper_eval import evaluate_runs
@@ -78,9 +94,11 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
     if len({kind for kind, _ in args.detector}) != len(args.detector):
         raise ValueError("give each detector kind once")
     detectors = {kind: DetectorRef(kind=kind, path=str(path)).load() for kind, path in args.detector}
+    _announce(device)
     atomic_files(out, lambda tmp: evaluate_runs(args.scenes, args.data, detectors, tmp, args.backend,
                                                 args.panel_frames, DecodeOptions(threshold=args.threshold),
-                                                get_protocol(args.protocol), offpath=not args.no_offpath))
+                                                get_protocol(args.protocol), offpath=not args.no_offpath,
+                                                device=device))
     print((out / "tables.md").read_text(), end="")
     print(f"report: {out}/tables.json, panels: " + (", ".join(f"{out}/panel_{k}.png" for k in detectors) or "none"))
     return 0
@@ -88,8 +106,10 @@ def _tables(args: argparse.Namespace, out: Path) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate and print the table(s)."""
+    from ..device import resolve_device
     from .outputs import check_output_folder
 
+    device = resolve_device(args.device)
     if len(args.scenes) > 1 and args.output is None:
         raise ValueError("several SCENEs need -o/--output")
     out = args.output or args.scenes[0][0] / "eval"
@@ -97,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     if args.detector or len(args.scenes) > 1:
         if args.projection is not None:
             raise ValueError("--projection applies to one SCENE without --detector")
-        return _tables(args, out)
+        return _tables(args, out, device)
     from parksim.recon.evaluate import evaluate_bundle
 
     from ..fileio import atomic_files
@@ -108,12 +128,13 @@ def run(args: argparse.Namespace) -> int:
     if args.lpips_backbone is not None:
         from parksim.recon.lpips import LPIPS
 
-        lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights)
+        lpips = LPIPS(args.lpips_net, args.lpips_backbone, args.lpips_weights, device)
     scene = args.scenes[0][0]
     result: dict = {}
+    _announce(device)
     atomic_files(out, lambda tmp: result.update(evaluate_bundle(scene, args.data, tmp, args.backend, lpips,
                                                                 offpath=not args.no_offpath,
-                                                                projection=args.projection)))
+                                                                projection=args.projection, device=device)))
     print((out / "eval.md").read_text(), end="")
     plot = f", off-path plot: {out}/offpath.png" if "offpath" in result else ""
     print(f"report: {out}/eval.json, side-by-sides: {out}/renders/{plot}")

@@ -1,9 +1,11 @@
 """Many scenes at once: each dataset is one Ray task that trains its own bundle into ``SCENES/<dataset name>/``.
 
 The driver plans every scene before it submits one (a finished bundle is skipped, a run with a checkpoint resumes,
-anything else starts fresh), gives each task ``cpus`` Ray CPUs and ``retries`` retries (Ray's ``max_retries`` with
-``retry_exceptions``: a retry resumes from the failed attempt's last checkpoint), and relays each task's progress
-(its metrics log, read as the trainer writes it) and failed attempts through a Ray queue while it waits.
+anything else starts fresh), gives each task ``cpus`` Ray CPUs, ``gpus`` Ray GPUs (fractions share one GPU among
+tasks) and ``retries`` retries (Ray's ``max_retries`` with ``retry_exceptions``: a retry resumes from the failed
+attempt's last checkpoint), and relays each task's progress (its metrics log, read as the trainer writes it) and
+failed attempts through a Ray queue while it waits. Each task trains on the config's ``run.device`` or the batch's
+``device``, resolved on the task's node, where a task's reserved GPUs are numbered from ``cuda:0``.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from .metrics_log import METRICS_FILE
 from .reconstruct import CONFIG_FILE, reconstruct
 
 __all__ = ["Scene", "Outcome", "SceneFailed", "one_line", "plan_scenes", "ray_session", "default_cpus_per_task",
-           "run_batch"]
+           "check_gpus", "run_batch"]
 
 BUNDLE_META = "bundle.json"
 """Written last by ``parksim.bundle.save``: its presence means the scene's bundle is finished."""
@@ -136,9 +138,10 @@ class _MetricsTail:
 
 
 @ray.remote
-def _train(scene: Scene, config: str, events: Queue) -> dict[str, Any]:
-    """One scene as a Ray task: resume from the checkpoint if there is one, else start over; returns the bundle's
-    metadata. A failed attempt is reported on ``events`` before Ray sees the exception (and retries)."""
+def _train(scene: Scene, config: str, events: Queue, device: str | None) -> dict[str, Any]:
+    """One scene as a Ray task: resume from the checkpoint if there is one, else start over, on ``device`` (None: the
+    config's); returns the bundle's metadata. A failed attempt is reported on ``events`` before Ray sees the
+    exception (and retries)."""
     resume = checkpoint_path(scene.out).is_file()
     if not resume:   # a run killed before its first checkpoint kept nothing to continue: start it over
         (scene.out / CONFIG_FILE).unlink(missing_ok=True)
@@ -151,7 +154,8 @@ def _train(scene: Scene, config: str, events: Queue) -> dict[str, Any]:
 
     try:
         with _MetricsTail(scene.out / METRICS_FILE, send):
-            reconstruct(scene.data, scene.out, config, resume=resume, log=lambda s: events.put(("log", scene.name, s)))
+            reconstruct(scene.data, scene.out, config, resume=resume, log=lambda s: events.put(("log", scene.name, s)),
+                        device=device)
     except Exception as e:
         line = one_line(e)
         events.put(("attempt failed", scene.name, line))
@@ -176,8 +180,35 @@ def ray_session(address: str | None) -> Iterator[None]:
         ray.shutdown()
 
 
+def _largest_node(resource: str) -> float:
+    """The most of ``resource`` (``CPU``, ``GPU``) one live node of the cluster has."""
+    return max(float(n["Resources"].get(resource, 0)) for n in ray.nodes() if n["Alive"])
+
+
 def _largest_node_cpus() -> int:
-    return max(int(n["Resources"].get("CPU", 0)) for n in ray.nodes() if n["Alive"])
+    return int(_largest_node("CPU"))
+
+
+def check_gpus(device: str, gpus_per_task: float) -> None:
+    """Refuse GPU settings no task could run with: a CUDA device without reserved GPUs (Ray places a task by what it
+    reserves, and older Ray versions show a task that reserves none no GPU), a GPU count Ray does not take (a fraction
+    must be below 1) or more GPUs than any node has.
+
+    Args:
+        device: the tasks' device name (``run.device`` or ``--device``).
+        gpus_per_task: Ray GPUs each task reserves.
+
+    Raises:
+        ValueError: one of the above, as one line.
+    """
+    if device.startswith("cuda") and not gpus_per_task:
+        raise ValueError(f"device {device} needs --gpus-per-task > 0 (e.g. 1, or 0.5 for two scenes per GPU): a Ray "
+                         "task is placed by the GPUs it reserves")
+    if gpus_per_task > 1 and not float(gpus_per_task).is_integer():
+        raise ValueError(f"--gpus-per-task {gpus_per_task:g}: Ray takes a fraction below 1 or a whole number")
+    if gpus_per_task > _largest_node("GPU"):
+        raise ValueError(f"--gpus-per-task {gpus_per_task:g}: no Ray node has that many GPUs "
+                         f"(largest: {_largest_node('GPU'):g})")
 
 
 def default_cpus_per_task(tasks: int) -> int:
@@ -193,7 +224,7 @@ def _existing_run(scene: Scene, config: TrainConfig) -> str | None:
     if not (finished or resumable):
         return None
     stored = scene.out / CONFIG_FILE
-    if stored.is_file() and load_config(stored) != config:
+    if stored.is_file() and not load_config(stored).same_run(config):
         raise ValueError(f"{scene.out} holds a run with another config: remove it or choose another output folder")
     return "finished" if finished else "resumable"
 
@@ -247,23 +278,32 @@ def _plan(scenes: Sequence[Scene], config: TrainConfig) -> tuple[dict[str, Outco
 
 
 def run_batch(scenes: Sequence[Scene], config: str, cpus_per_task: int | None = None,
-              retries: int = 1, report: Callable[[str], None] = print, progress_every: float = 10.0
-              ) -> list[Outcome]:
+              retries: int = 1, report: Callable[[str], None] = print, progress_every: float = 10.0,
+              device: str | None = None, gpus_per_task: float = 0.0) -> list[Outcome]:
     """Train every scene (``plan_scenes``) whose bundle is not yet written as a Ray task (Ray must be up, see
-    ``ray_session``); returns one outcome per scene, in order. A failed scene does not stop the others."""
+    ``ray_session``); returns one outcome per scene, in order. A failed scene does not stop the others. ``device``
+    overrides the config's ``run.device`` in every task (a run started on another device resumes on this one);
+    ``gpus_per_task`` is each task's Ray ``num_gpus``."""
     train_config = load_config(config)
+    if device is not None:
+        train_config = train_config.on_device(device)
     outcomes, todo = _plan(scenes, train_config)
     if not todo:
         return [outcomes[s.name] for s in scenes]
     cpus = cpus_per_task or default_cpus_per_task(len(todo))
     if cpus > _largest_node_cpus():
         raise ValueError(f"--cpus-per-task {cpus}: no Ray node has that many CPUs (largest: {_largest_node_cpus()})")
-    report(f"training {len(todo)} of {len(scenes)} scene(s) as Ray tasks, {cpus} CPU(s) each")
+    check_gpus(train_config.run.device, gpus_per_task)
+    gpus = f" and {gpus_per_task:g} GPU(s)" if gpus_per_task else ""
+    report(f"training {len(todo)} of {len(scenes)} scene(s) as Ray tasks on {train_config.run.device}, "
+           f"{cpus} CPU(s){gpus} each")
     events = Queue(actor_options={"num_cpus": 0})
     relay = _Relay(events, report, retries, progress_every)
     threads = {"OMP_NUM_THREADS": str(cpus), "NUMBA_NUM_THREADS": str(cpus)}   # torch's and numba's pools
-    options = {"num_cpus": cpus, "max_retries": retries, "retry_exceptions": True, "runtime_env": {"env_vars": threads}}
-    pending = {_train.options(**options, name=f"reconstruct {s.name}").remote(s, _worker_config(config), events): s
+    options = {"num_cpus": cpus, "num_gpus": gpus_per_task, "max_retries": retries, "retry_exceptions": True,
+               "runtime_env": {"env_vars": threads}}
+    pending = {_train.options(**options, name=f"reconstruct {s.name}").remote(s, _worker_config(config), events,
+                                                                              device): s
                for s in todo}
     try:
         while pending:

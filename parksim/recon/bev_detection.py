@@ -67,11 +67,11 @@ def gt_bevs(reader: DatasetReader, frames: list[int]) -> list[TestBEV]:
 def rendered_bevs(scene: GaussianScene, reader: DatasetReader, frames: list[int], response: Response | None,
                   backend: str = "auto", method: str = "ut") -> list[TestBEV]:
     """IPM of the scene's views of each frame (projection ``method``), through the learned camera response and
-    clipped to [0, 1]."""
+    clipped to [0, 1]; rendered on the scene's device, returned on the CPU (where the detectors and drawing run)."""
     _check(reader, frames)
     ipm = bev_ipm(reader.rig)
     return [TestBEV(f, ipm({c: render_view(scene, reader, f, c, response, backend, method=method).clamp(0.0, 1.0)
-                            for c in ipm.cameras}), _labels(reader, f)) for f in frames]
+                            for c in ipm.cameras}).cpu(), _labels(reader, f)) for f in frames]
 
 
 @torch.no_grad()

@@ -2,6 +2,8 @@
 
 One file, ``checkpoints/last.pt``, replaced atomically; it holds the parameters, Adam moments,
 the strategy's and camera response's state, the RNG state, the iteration and the wall-clock and CPU time spent.
+Its tensors are always CPU tensors, whatever device the run trains on, so a checkpoint written on a GPU resumes on
+the CPU and the other way round (the trainer moves them to its device).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import torch
 
 from parksim.fileio import atomic_write
 
-__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "checkpoint_path", "FORMAT"]
+__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "checkpoint_path", "tensors_to", "FORMAT"]
 
 FORMAT = "parksim-recon-checkpoint/1"
 _REQUIRED = ("format", "iteration", "params", "optimizer", "response", "strategy", "rng", "config", "elapsed", "cpu")
@@ -32,12 +34,31 @@ def checkpoint_path(out_dir: str | Path) -> Path:
     return Path(out_dir) / "checkpoints" / "last.pt"
 
 
+def tensors_to(value: Any, device: torch.device) -> Any:
+    """``value`` with every tensor inside it (dicts, lists, tuples) moved to ``device`` (ones already there are kept).
+
+    Args:
+        value: a state (``Trainer.state()``, a strategy's ``state_dict()``) or any plain value.
+        device: where the tensors go.
+
+    Returns:
+        The same structure.
+    """
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return {k: tensors_to(v, device) for k, v in value.items()}
+    if type(value) in (list, tuple):   # exactly: a named tuple would not rebuild from one iterable
+        return type(value)(tensors_to(v, device) for v in value)
+    return value
+
+
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
-    """Write ``state`` (must hold the required keys) atomically."""
+    """Write ``state`` (must hold the required keys) atomically, its tensors moved to the CPU."""
     missing = [k for k in _REQUIRED if k not in state and k != "format"]
     if missing:
         raise ValueError(f"checkpoint state lacks {missing}")
-    atomic_write(path, lambda p: torch.save({"format": FORMAT, **state}, p))
+    atomic_write(path, lambda p: torch.save({"format": FORMAT, **tensors_to(state, torch.device("cpu"))}, p))
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:

@@ -103,9 +103,13 @@ class PhotometricConfig(_Strict):
 
 
 class RunConfig(_Strict):
-    """Run mechanics: seed, batch, renderer, logging and checkpoint cadence."""
+    """Run mechanics: seed, device, batch, renderer, logging and checkpoint cadence."""
 
     seed: int = 0
+    device: str = Field("cpu", pattern=r"^(auto|cpu|cuda(:[0-9]+)?)$",
+                        description="where to train: cpu, cuda[:N], or auto (a CUDA GPU when there is one and the "
+                                    "CUDA extra is installed); `--device` overrides it; not part of what a resume "
+                                    "or --from compares, so a run may continue on another device")
     batch_size: int = Field(1, gt=0, description="(frame, camera) views rendered per iteration")
     backend: Literal["auto", "torch", "numba"] = "auto"
     projection: Literal["ut", "ewa"] = Field("ut", description="2D footprints: the unscented transform through the "
@@ -140,7 +144,7 @@ class TrainConfig(_Strict):
     """Everything ``parksim reconstruct`` needs besides the data.
 
     Attributes:
-        run: seed, batch, renderer, logging and checkpoint cadence.
+        run: seed, device, batch, renderer, logging and checkpoint cadence.
         init: where the initial Gaussians come from.
         lr: Adam learning rates per attribute.
         photometric: phase 1 (L1 + D-SSIM on the fisheye images).
@@ -173,6 +177,35 @@ class TrainConfig(_Strict):
     def schedule_iterations(self) -> int:
         """Length of the learning-rate schedule: both phases."""
         return self.photometric.iterations + self.slot_aware.iterations
+
+    def on_device(self, device: str) -> TrainConfig:
+        """This config with ``run.device`` set to ``device`` (the ``--device`` override).
+
+        Args:
+            device: ``auto``, ``cpu`` or ``cuda[:N]``.
+
+        Returns:
+            A copy.
+
+        Raises:
+            ValidationError: ``device`` is not one of those names.
+        """
+        run = RunConfig.model_validate({**self.run.model_dump(), "device": device})
+        return self.model_copy(update={"run": run})
+
+    def same_run(self, other: TrainConfig) -> bool:
+        """Whether ``other`` trains the same run: equal in everything but ``run.device``.
+
+        Where a run trains does not change what it trains, so a checkpoint written on a GPU resumes on the CPU and
+        the other way round.
+
+        Args:
+            other: the config to compare (a checkpoint's, a run folder's).
+
+        Returns:
+            True when they differ at most in ``run.device``.
+        """
+        return self.on_device("cpu") == other.on_device("cpu")
 
 
 def _format_errors(err: ValidationError) -> str:

@@ -87,13 +87,17 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
                    side_by_side: Path | None = None, rig: Rig | None = None,
                    view_pose: ViewPose | None = None, method: str = "ut") -> EvalReport:
     """Score each ``(frame, camera)`` view against the dataset over the camera's scene mask (rendered with ``rig``
-    at ``view_pose``, the dataset's by default, by projection ``method``)."""
+    at ``view_pose``, the dataset's by default, by projection ``method``).
+
+    Renders and scores run on the scene's device (``response`` must be there too); the slot-region masks are
+    found on the CPU (a ray-floor test per pixel, once per view) and moved there."""
     rig, view_pose = rig or reader.rig, view_pose or reader.view_pose
-    masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in {c for _, c in views}}
+    device = scene.means.device
+    masks = {c: scene_mask(rig.cameras[c], rig.bev).to(device) for c in {c for _, c in views}}
     segments = slot_segments(reader.map) if slots and reader.layout.map.is_file() else torch.zeros(0, 2, 2)
     report = EvalReport()
     for frame, camera in views:
-        gt = reader.image(camera, frame)
+        gt = reader.image(camera, frame).to(device)
         pred = render_view(scene, reader, frame, camera, response, backend, rig, view_pose, method).clamp(0.0, 1.0)
         mask = masks[camera]
         row: dict[str, Any] = {"frame": frame, "camera": camera,
@@ -101,7 +105,8 @@ def evaluate_views(scene: GaussianScene, reader: DatasetReader, views: list[tupl
         if len(segments):
             depth_path = reader.layout.depth(camera, frame)
             depth = reader.depth(camera, frame) if depth_path.is_file() else None
-            slot = slot_region_mask(rig.cameras[camera], view_pose(camera, frame), segments, depth) & mask
+            slot = slot_region_mask(rig.cameras[camera], view_pose(camera, frame).cpu(), segments,
+                                    depth).to(device) & mask
             if slot.any():
                 row["slot_psnr"], row["slot_ssim"] = psnr(pred, gt, slot), ssim(pred, gt, slot)
             row["slot_pixels"] = int(slot.sum())
@@ -173,7 +178,7 @@ def _offpath(bundle: Bundle, split: Path, response: Response, backend: str, alig
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
                     lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None,
                     align_steps: int | None = None, offpath: bool = True,
-                    projection: str | None = None) -> dict[str, Any]:
+                    projection: str | None = None, device: torch.device | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
 
     Views are rendered with the projection the bundle was trained with (``Bundle.projection``, as the server
@@ -182,16 +187,20 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     A pose-refined bundle's test poses are aligned first (``align_steps``; None: as its run configured, 0: off);
     eval.json then holds them as ``aligned_test_poses`` (poses.json schema). With ``offpath`` and an off-path split
     in the dataset (``parksim offpath``), its views are scored the same way and grouped by offset: eval.json's
-    ``offpath``, a table in eval.md and ``offpath.png``."""
+    ``offpath``, a table in eval.md and ``offpath.png``.
+
+    Everything renders and scores on ``device`` (a ``parksim.device.resolve_device`` result; None: the CPU), where
+    ``lpips`` must run too."""
     from parksim.bundle import load
     from parksim.fileio import write_json
 
     from .response import CameraResponse
 
     bundle, reader = load(scene_dir), DatasetReader(data_dir)
+    bundle = dataclasses.replace(bundle, scene=bundle.scene.to(device=device))
     if projection is not None:
         bundle = dataclasses.replace(bundle, meta={**bundle.meta, "projection": projection})
-    response = CameraResponse(reader.rig, 0.0)
+    response = CameraResponse(reader.rig, 0.0, device)
     response.load_dict(bundle.meta.get("camera_response", {}))
     frames = reader.split["test"]
     if not frames:
@@ -201,11 +210,11 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
                                                    out_dir / "renders")
     view_pose = aligned.view_pose if aligned is not None else None
     if lpips is not None:
-        masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}
+        masks = {c: scene_mask(rig.cameras[c], rig.bev).to(device) for c in rig.names}
         for row in report.views:
             pred = render_view(bundle.scene, reader, row["frame"], row["camera"], response, backend, rig,
                                view_pose, bundle.projection).clamp(0, 1)
-            row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]), masks[row["camera"]])
+            row["lpips"] = lpips(pred, reader.image(row["camera"], row["frame"]).to(device), masks[row["camera"]])
     summary = summarize(report, reader.rig.names, frames)
     summary["overall"]["lpips"] = report.mean("lpips")
     result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,

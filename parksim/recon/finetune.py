@@ -54,7 +54,8 @@ def finetune_config(config: TrainConfig, iterations: int, sh_degree: int) -> Tra
 def finetune(bundle: Bundle, reader: DatasetReader, iterations: int = FINETUNE_ITERATIONS,
              config: TrainConfig | None = None, progress: bool = False) -> Bundle:
     """``bundle`` with its Gaussians (same count) and camera response fine-tuned for ``iterations`` steps on
-    ``reader``'s training views; ``meta["finetune"]`` records the run (iterations, first and last loss, seconds)."""
+    ``reader``'s training views, on the device its Gaussians are on; ``meta["finetune"]`` records the run
+    (iterations, first and last loss, seconds)."""
     if iterations < 0:
         raise ValueError(f"fine-tuning iterations must be >= 0, got {iterations}")
     if bundle.poses is not None:
@@ -62,7 +63,8 @@ def finetune(bundle: Bundle, reader: DatasetReader, iterations: int = FINETUNE_I
                          "pass --finetune 0")
     if iterations == 0:
         return bundle
-    cfg = finetune_config(config or TrainConfig(), iterations, bundle.scene.sh_degree)
+    cfg = finetune_config(config or TrainConfig(), iterations, bundle.scene.sh_degree).on_device(
+        str(bundle.scene.means.device))
     trainer = Trainer(reader, cfg, Path("."), log=lambda _: None)   # iteration() only: nothing is written
     trainer.response.load_dict(bundle.meta.get("camera_response", {}))
     trainer.initialise(bundle.scene)
@@ -70,9 +72,10 @@ def finetune(bundle: Bundle, reader: DatasetReader, iterations: int = FINETUNE_I
     assert params is not None   # initialise() sets it
     start, losses = time.perf_counter(), []
     for _ in tqdm(range(iterations), desc="fine-tuning", unit="it", disable=not progress, dynamic_ncols=True):
-        losses.append(trainer.iteration()["loss"])
+        losses.append(trainer.iteration()["loss"])   # off the CPU a device scalar: read once, after the loop
     if len(params) != len(bundle.scene):
         raise RuntimeError(f"fine-tuning changed the Gaussian count ({len(bundle.scene)} -> {len(params)})")
+    losses = [float(loss) for loss in losses]
     head, tail = losses[:max(1, iterations // 10)], losses[-max(1, iterations // 10):]
     record = {"iterations": iterations, "lr_scale": LR_SCALE, "densify": "off",
               "loss_first_tenth": sum(head) / len(head), "loss_last_tenth": sum(tail) / len(tail),

@@ -18,7 +18,8 @@ from torch import Tensor
 
 from . import _ssim_kernels as kernels
 
-__all__ = ["masked_mean", "ssim_map", "l1_loss", "dssim_loss", "photometric_loss", "sum_terms", "SSIM_WINDOW"]
+__all__ = ["masked_mean", "ssim_map", "l1_loss", "dssim_loss", "dssim_torch", "photometric_loss", "sum_terms",
+           "SSIM_WINDOW"]
 
 SSIM_WINDOW = 11
 """Gaussian window of SSIM (the 3DGS and kornia default), sigma 1.5."""
@@ -33,6 +34,18 @@ def _gaussian_window() -> Tensor:
 
 
 _WINDOW = _gaussian_window()
+_DEVICE_WINDOWS: dict[tuple[torch.device, torch.dtype], Tensor] = {}
+
+
+def _window_like(x: Tensor) -> Tensor:
+    """The SSIM taps in ``x``'s dtype on its device: converted on each call on the CPU as ever, copied once to a GPU
+    (a host-to-device copy in every step would wait for the GPU)."""
+    if x.device.type == "cpu":
+        return _WINDOW.to(x)
+    key = (x.device, x.dtype)
+    if key not in _DEVICE_WINDOWS:
+        _DEVICE_WINDOWS[key] = _WINDOW.to(x)
+    return _DEVICE_WINDOWS[key]
 
 
 def masked_mean(values: Tensor, mask: Tensor) -> Tensor:
@@ -49,7 +62,7 @@ def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
     """
     c = pred.shape[1]
     stack = torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], dim=1)
-    n, w = stack.shape[1], _WINDOW.to(pred)
+    n, w = stack.shape[1], _window_like(pred)
     r = SSIM_WINDOW // 2
     stack = F.pad(stack, (r, r, r, r), mode="reflect")
     stack = F.conv2d(stack, w.view(1, 1, 1, -1).expand(n, 1, 1, -1), groups=n)
@@ -88,18 +101,34 @@ class _DSSIM(torch.autograd.Function):
         return torch.from_numpy(grad_pred).view(weight.shape), None, None
 
 
+def dssim_torch(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
+    """Masked 1 - SSIM in torch operations only: on any device, differentiable in every input.
+
+    ``dssim_loss``'s path off the CPU (the GPU trainer's D-SSIM) and wherever the numba kernels do not apply.
+
+    Args:
+        pred: ``[B, C, H, W]`` rendered images in [0, 1].
+        gt: ``[B, C, H, W]`` targets, same device.
+        mask: ``[B, 1, H, W]`` pixel weights (1 = scene pixel), same device.
+
+    Returns:
+        A scalar tensor on the images' device.
+    """
+    return 1.0 - masked_mean(ssim_map(pred, gt), mask)
+
+
 def dssim_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
     """Masked 1 - SSIM (the D-SSIM term of 3DGS).
 
     On the CPU, with a gradient wanted in ``pred`` only, the numba kernels compute it (a fused forward and an
     adjoint blur in the backward; 3x faster than torch's convolutions); otherwise (CUDA, a gradient in ``gt``,
-    images too small to reflect-pad, which torch then reports), and as the tests' reference, ``ssim_map``.
+    images too small to reflect-pad, which torch then reports), and as the tests' reference, ``dssim_torch``.
     """
     fused = (pred.device.type == "cpu" and pred.dtype in (torch.float32, torch.float64)
              and not gt.requires_grad and not mask.requires_grad and min(pred.shape[-2:]) > SSIM_WINDOW // 2)
     if fused:
         return _DSSIM.apply(pred, gt, mask)
-    return 1.0 - masked_mean(ssim_map(pred, gt), mask)
+    return dssim_torch(pred, gt, mask)
 
 
 def photometric_loss(pred: Tensor, gt: Tensor, mask: Tensor, ssim_lambda: float) -> Tensor:

@@ -57,9 +57,13 @@ def _load(path: str | Path) -> dict[str, Tensor]:
 
 
 class LPIPS:
-    """``lpips(pred, gt, mask)``: LPIPS distance of HxWx3 [0,1] images, spatially averaged over ``mask``."""
+    """``lpips(pred, gt, mask)``: LPIPS distance of HxWx3 [0,1] images, spatially averaged over ``mask``.
 
-    def __init__(self, net: str, backbone_weights: str | Path, lpips_weights: str | Path) -> None:
+    The network runs on ``device`` (default the CPU); the images and mask must be there too.
+    """
+
+    def __init__(self, net: str, backbone_weights: str | Path, lpips_weights: str | Path,
+                 device: torch.device | None = None) -> None:
         if net not in _NETS:
             raise LPIPSError(f"LPIPS network must be one of {sorted(_NETS)}, got {net!r}")
         spec, self.taps = _NETS[net]
@@ -68,9 +72,11 @@ class LPIPS:
         heads = _load(lpips_weights)
         try:
             self.features.load_state_dict(backbone)
-            self.heads = [heads[f"lin{i}.model.1.weight"].float() for i in range(len(self.taps))]
+            self.heads = [heads[f"lin{i}.model.1.weight"].float().to(device) for i in range(len(self.taps))]
         except (RuntimeError, KeyError) as e:
             raise LPIPSError(f"{backbone_weights} / {lpips_weights} do not fit LPIPS-{net}: {e}") from None
+        self.features.to(device)
+        self._shift, self._scale = _SHIFT.to(device), _SCALE.to(device)
 
     def _taps(self, x: Tensor) -> list[Tensor]:
         out = []
@@ -84,7 +90,7 @@ class LPIPS:
 
     @torch.no_grad()
     def __call__(self, pred: Tensor, gt: Tensor, mask: Tensor) -> float:
-        a, b = ((img.permute(2, 0, 1)[None].float() * 2 - 1 - _SHIFT) / _SCALE for img in (pred, gt))
+        a, b = ((img.permute(2, 0, 1)[None].float() * 2 - 1 - self._shift) / self._scale for img in (pred, gt))
         m = mask[None, None].float()
         total = 0.0
         for fa, fb, w in zip(self._taps(a), self._taps(b), self.heads):

@@ -14,7 +14,7 @@ from parksim.rig import RigCamera
 
 from .losses import masked_mean, ssim_map
 
-__all__ = ["psnr", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
+__all__ = ["psnr", "psnr_tensor", "ssim", "slot_segments", "slot_region_mask", "SLOT_RADIUS"]
 
 SLOT_RADIUS = 0.5
 """Slot regions: pixels seeing the floor within this distance (m) of a painted slot line."""
@@ -33,6 +33,22 @@ def psnr(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
     m = mask[None, None].to(pred.dtype)
     mse = float(masked_mean((_batch(pred) - _batch(gt)) ** 2, m))
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
+
+
+def psnr_tensor(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
+    """``psnr`` as a 0-dim float64 tensor on the images' device (inf for a perfect match): nothing is read back to
+    the host, so a GPU training step need not wait for it.
+
+    Args:
+        pred: ``[H, W, 3]`` image.
+        gt: ``[H, W, 3]`` target, same device.
+        mask: ``[H, W]`` bool, same device.
+
+    Returns:
+        PSNR in dB (peak 1).
+    """
+    mse = masked_mean((_batch(pred) - _batch(gt)) ** 2, mask[None, None].to(pred.dtype)).double()
+    return -10.0 * torch.log10(mse)
 
 
 def ssim(pred: Tensor, gt: Tensor, mask: Tensor) -> float:

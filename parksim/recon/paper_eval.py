@@ -11,11 +11,12 @@ ground-truth vs rendered BEVs with labels and detections.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from parksim.bundle import Bundle, load
 from parksim.data import DatasetReader
@@ -105,9 +106,10 @@ class _Split:
 
     def score(self, bundle: Bundle, detectors: dict[str, Detector], decode: DecodeOptions, protocol: Protocol,
               backend: str) -> tuple[dict[str, dict[str, Any]], list[TestBEV], dict[str, dict[str, DetectionScore]]]:
-        """A reconstruction's image scores per group, its rendered BEVs and each detector's scores per group."""
+        """A reconstruction's image scores per group, its rendered BEVs and each detector's scores per group (on
+        the bundle scene's device; the BEVs come back to the CPU for the detectors)."""
         reader = self.reader
-        response = CameraResponse(reader.rig, 0.0)
+        response = CameraResponse(reader.rig, 0.0, bundle.scene.means.device)
         response.load_dict(bundle.meta.get("camera_response", {}))
         frames = [f for fs in self.groups.values() for f in fs]
         views = [(f, c) for f in frames for c in reader.rig.names]
@@ -138,12 +140,13 @@ def _offpath_split(data_dir: Path, detectors: dict[str, Detector], decode: Decod
 def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors: dict[str, Detector],
                   out_dir: Path, backend: str = "auto", panel_frames: int = 3,
                   decode: DecodeOptions = DecodeOptions(), protocol: Protocol = ParkSimProtocol(),
-                  offpath: bool = True) -> dict[str, Any]:
+                  offpath: bool = True, device: torch.device | None = None) -> dict[str, Any]:
     """Score each ``(bundle folder, label or None)`` on the dataset's test frames; returns what ``tables.json`` holds.
 
     ``decode`` sets the detectors' operating point (confidence threshold) for every BEV alike; ``protocol`` the
     detection scoring rules (recorded in the result). With ``offpath`` and an off-path split in the dataset, every
     reconstruction and detector is also scored on it per offset group (``offpath`` in the result and each row).
+    The reconstructions render and are scored on ``device`` (None: the CPU); the detectors run on the CPU.
     """
     reader = DatasetReader(data_dir)
     frames = reader.split["test"]
@@ -157,6 +160,7 @@ def evaluate_runs(runs: list[tuple[Path, str | None]], data_dir: Path, detectors
     for scene_dir, label in runs:
         info = describe_run(scene_dir, label)
         bundle = load(scene_dir)
+        bundle = replace(bundle, scene=bundle.scene.to(device=device))
         quality, bevs, scores = test.score(bundle, detectors, decode, protocol, backend)
         detection = {}
         for name, by in scores.items():

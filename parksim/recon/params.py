@@ -18,22 +18,28 @@ NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
 
 
 class GaussianParams:
-    """The trainable attributes (float32 leaves) and one Adam optimizer with a param group per attribute."""
+    """The trainable attributes (float32 leaves) and one Adam optimizer with a param group per attribute.
 
-    def __init__(self, tensors: dict[str, Tensor], lrs: dict[str, float]) -> None:
-        self.tensors = {k: tensors[k].detach().to(torch.float32).clone().requires_grad_(True) for k in NAMES}
+    The tensors live on one device (``device``, default the given tensors'); Adam's fused kernel runs there.
+    """
+
+    def __init__(self, tensors: dict[str, Tensor], lrs: dict[str, float], device: torch.device | None = None) -> None:
+        self.tensors = {k: tensors[k].detach().to(device=device, dtype=torch.float32).clone().requires_grad_(True)
+                        for k in NAMES}
         self.optimizer = torch.optim.Adam([{"params": [self.tensors[k]], "lr": lrs[k], "name": k} for k in NAMES],
                                           eps=1e-15, fused=True)
 
     @classmethod
-    def from_scene(cls, scene: GaussianScene, max_sh_degree: int, lrs: dict[str, float]) -> GaussianParams:
-        """Split SH into DC and rest, zero-padding the rest up to ``max_sh_degree``."""
+    def from_scene(cls, scene: GaussianScene, max_sh_degree: int, lrs: dict[str, float],
+                   device: torch.device | None = None) -> GaussianParams:
+        """Split SH into DC and rest, zero-padding the rest up to ``max_sh_degree``; on ``device`` (default the
+        scene's)."""
         n, k = len(scene), (max_sh_degree + 1) ** 2
-        rest = torch.zeros(n, k - 1, 3, dtype=scene.sh.dtype)
+        rest = torch.zeros(n, k - 1, 3, dtype=scene.sh.dtype, device=scene.sh.device)
         m = min(k, scene.sh.shape[1]) - 1
         rest[:, :m] = scene.sh[:, 1:m + 1]
         return cls({"means": scene.means, "quats": scene.quats, "log_scales": scene.log_scales,
-                    "opacity_logits": scene.opacity_logits, "sh0": scene.sh[:, :1], "shN": rest}, lrs)
+                    "opacity_logits": scene.opacity_logits, "sh0": scene.sh[:, :1], "shN": rest}, lrs, device)
 
     def __len__(self) -> int:
         return self.tensors["means"].shape[0]

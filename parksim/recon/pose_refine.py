@@ -44,7 +44,7 @@ def so3xr3(delta: Tensor) -> Tensor:
     w, v = delta[:3], delta[3:]
     zero = w.new_zeros(())
     skew = torch.stack([zero, -w[2], w[1], w[2], zero, -w[0], -w[1], w[0], zero]).reshape(3, 3)
-    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=delta.dtype)
+    bottom = torch.cat([delta.new_zeros(1, 3), delta.new_ones(1, 1)], 1)   # made on delta's device: no host copy
     return torch.cat([torch.cat([torch.linalg.matrix_exp(skew), v[:, None]], 1), bottom])
 
 
@@ -64,27 +64,35 @@ class PoseCorrections:
     """Corrections of one dataset's poses (``keys``: frames, or (frame, camera) images) and, optionally, extrinsics.
 
     ``rig`` is the rig rendered with (the dataset's in training, a bundle's refined one in evaluation);
-    ``view_pose(camera, frame)`` is the corrected ``T_world_vehicle`` to pass with it to ``render``.
+    ``view_pose(camera, frame)`` is the corrected ``T_world_vehicle`` to pass with it to ``render``. The corrections,
+    the recorded poses they correct and the extrinsics they use live on ``device`` (the Gaussians'; default the
+    CPU), so the corrected poses are made there; ``refined_rig`` is a CPU rig as every rig is.
     """
 
     def __init__(self, reader: DatasetReader, rig: Rig, cfg: PoseRefineConfig, iterations: int,
-                 frames: Sequence[int] | None = None, extrinsics: bool | None = None) -> None:
+                 frames: Sequence[int] | None = None, extrinsics: bool | None = None,
+                 device: torch.device | None = None) -> None:
         self.reader, self.rig, self.cfg, self.iterations = reader, rig, cfg, iterations
         self.per_image = not reader.has_vehicle_poses
         self.frames = frames = list(reader.frames if frames is None else frames)
         self.keys: list[Key] = [(f, c) for f in frames for c in rig.names] if self.per_image else [f for f in frames]
         self.rows = {k: i for i, k in enumerate(self.keys)}
         self.extrinsics_on = (cfg.extrinsics if extrinsics is None else extrinsics) and not self.per_image
-        self.poses = torch.zeros(len(self.keys), 6, dtype=torch.float64, requires_grad=True)
-        self.extrinsics = torch.zeros(len(rig.names), 6, dtype=torch.float64, requires_grad=self.extrinsics_on)
+        self.poses = torch.zeros(len(self.keys), 6, dtype=torch.float64, device=device, requires_grad=True)
+        self.extrinsics = torch.zeros(len(rig.names), 6, dtype=torch.float64, device=device,
+                                      requires_grad=self.extrinsics_on)
         groups = [{"params": [self.poses], "name": "poses"}]
         if self.extrinsics_on:
             groups.append({"params": [self.extrinsics], "name": "extrinsics"})
         self.optimizer = torch.optim.Adam(groups, lr=cfg.lr, eps=1e-15, weight_decay=cfg.weight_decay)
         trained = [self.rows[f] for f in reader.split["train"] if f in self.rows]
-        self._gauge = trained if self.extrinsics_on and trained else None
-        self._centres = {c: rig.cameras[c].T_vehicle_camera[:3, 3] for c in rig.names}
-        self._inverse = {c: invert_transform(rig.cameras[c].T_vehicle_camera) for c in rig.names}
+        self._gauge = (torch.tensor(trained, dtype=torch.int64, device=device)
+                       if self.extrinsics_on and trained else None)
+        self._extrinsic = {c: rig.cameras[c].T_vehicle_camera.to(device) for c in rig.names}
+        self._centres = {c: T[:3, 3] for c, T in self._extrinsic.items()}
+        self._inverse = {c: invert_transform(T) for c, T in self._extrinsic.items()}
+        self._recorded = {k: (reader.camera_pose(k[1], k[0]) if isinstance(k, tuple) else reader.pose(k)).to(device)
+                          for k in self.keys}
 
     # --- corrected poses ---------------------------------------------------------------------
     def _row(self, camera: str, frame: int) -> Tensor:
@@ -98,11 +106,11 @@ class PoseCorrections:
 
     def ego_pose(self, frame: int) -> Tensor:
         """The corrected ``T_world_vehicle`` of a frame (ego datasets only)."""
-        return self.reader.pose(frame) @ so3xr3(self.poses[self.rows[frame]])
+        return self._recorded[frame] @ so3xr3(self.poses[self.rows[frame]])
 
     def camera_pose(self, camera: str, frame: int) -> Tensor:
         """The corrected ``T_world_camera`` of one image (per-image datasets only)."""
-        return self.reader.camera_pose(camera, frame) @ so3xr3(self._row(camera, frame))
+        return self._recorded[(frame, camera)] @ so3xr3(self._row(camera, frame))
 
     def view_pose(self, camera: str, frame: int) -> Tensor:
         """Corrected ``T_world_vehicle`` at which ``render(scene, self.rig, ., cameras=[camera])`` shows the image."""
@@ -117,7 +125,7 @@ class PoseCorrections:
         """The rig with the corrected extrinsics (``self.rig`` itself when they are not refined)."""
         if not self.extrinsics_on:
             return self.rig
-        cams = {c: RigCamera(c, cam.model, self._extrinsic_delta(c) @ cam.T_vehicle_camera)
+        cams = {c: RigCamera(c, cam.model, (self._extrinsic_delta(c) @ self._extrinsic[c]).cpu())
                 for c, cam in self.rig.cameras.items()}
         return Rig(cams, self.rig.bev)
 
@@ -190,14 +198,16 @@ def align_poses(scene: GaussianScene, reader: DatasetReader, rig: Rig, views: Se
                 ssim_lambda: float = 0.2) -> PoseCorrections:
     """Test-time pose alignment (as BARF and its successors evaluate): Gaussians, rig and response frozen,
     only the views' own pose corrections are fitted, full batch, for ``steps`` Adam steps (``cfg.test_lr``) of the
-    training loss."""
+    training loss. Runs on the scene's device (``response`` must be there too)."""
+    device = scene.means.device
     frames = sorted({f for f, _ in views})
     corr = PoseCorrections(reader, rig, cfg.model_copy(update={"lr": cfg.test_lr}), steps, frames=frames,
-                           extrinsics=False)
+                           extrinsics=False, device=device)
     frozen = GaussianScene(scene.means.detach(), scene.quats.detach(), scene.log_scales.detach(),
                            scene.opacity_logits.detach(), scene.sh.detach(), scene.sh_degree)
-    masks = {c: scene_mask(rig.cameras[c], rig.bev).to(torch.float32)[None, None] for c in {c for _, c in views}}
-    targets = {(f, c): reader.image(c, f) for f, c in views}
+    masks = {c: scene_mask(rig.cameras[c], rig.bev).to(device=device, dtype=torch.float32)[None, None]
+             for c in {c for _, c in views}}
+    targets = {(f, c): reader.image(c, f).to(device) for f, c in views}
     for step in range(steps):
         losses = []
         for frame, camera in views:

@@ -24,7 +24,7 @@ CONFIG_FILE = "config.yaml"
 
 
 def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool) -> TrainConfig:
-    """The run's config; a resumed run must keep the one it started with."""
+    """The run's config; a resumed run must keep the one it started with (its ``run.device`` aside)."""
     if not resume:
         if (out_dir / CONFIG_FILE).exists() or checkpoint_path(out_dir).exists():
             raise ValueError(f"{out_dir} already holds a run; pass --resume to continue it or choose another folder")
@@ -33,7 +33,7 @@ def _resolve_config(out_dir: Path, config_path: str | Path | None, resume: bool)
         raise ValueError(f"{out_dir / CONFIG_FILE} is missing: the earlier run never wrote its config (it stopped "
                          "before training began), so there is nothing to resume; run again without --resume")
     stored = load_config(out_dir / CONFIG_FILE)
-    if config_path is not None and load_config(config_path) != stored:
+    if config_path is not None and not load_config(config_path).same_run(stored):
         raise ValueError(f"--config {config_path} differs from the config the run in {out_dir} started with")
     return stored
 
@@ -57,13 +57,15 @@ def _start_from(trainer: Trainer, photometric_run: Path) -> None:
 
 def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Path | None = None,
                 resume: bool = False, stop_after: int | None = None, log: Callable[[str], None] = print,
-                start_from: str | Path | None = None) -> Path:
+                start_from: str | Path | None = None, device: str | None = None) -> Path:
     """Train a scene from ``data_dir`` into ``out_dir``; returns ``out_dir`` once the bundle is written.
 
     Every input (dataset, config, checkpoint, detector) is checked before anything is written. ``stop_after``
     ends the run early (as a kill would, after a checkpoint) and writes no bundle. ``start_from`` names a
     finished photometric run (its folder, checkpoint kept) whose state this run continues from: only the
-    slot-aware iterations are trained, so variants share one photometric phase.
+    slot-aware iterations are trained, so variants share one photometric phase. ``device`` overrides the config's
+    ``run.device`` (a fresh run's config.yaml records it); a resumed run may continue on another device than the one
+    it started on.
 
     Args:
         data_dir: the dataset folder (``parksim.data`` layout).
@@ -73,6 +75,7 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         stop_after: stop after this iteration (as a kill would) and write no bundle.
         log: receives one line per progress message.
         start_from: a finished photometric run's folder to continue the slot-aware phase from.
+        device: ``auto``, ``cpu`` or ``cuda[:N]`` to train on (None: the config's ``run.device``).
 
     Returns:
         ``out_dir`` as a Path.
@@ -81,13 +84,16 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
         ValueError: ``resume`` with ``start_from``; a fresh run into a folder that holds one; a resumed run given
             another config; a resumed run whose folder has no config (its run never wrote one); ``start_from``
             without a slot-aware phase. ``DatasetError`` and ``ConfigError`` (both
-            ValueErrors) for a broken dataset or config.
+            ValueErrors) for a broken dataset or config; ``DeviceError`` (a ValueError) for a device name that is
+            malformed or names a GPU this machine lacks.
     """
     out_dir = Path(out_dir)
     if resume and start_from is not None:
         raise ValueError("--resume continues this run; --from starts a new one: give one of them")
     reader = DatasetReader(data_dir)
     config = _resolve_config(out_dir, config_path, resume)
+    if device is not None:
+        config = config.on_device(device)
     if resume:
         trainer = Trainer.from_checkpoint(reader, config, out_dir, log)
         trainer.decode_inputs()
@@ -123,7 +129,8 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
     if trainer.corrections is not None:
         meta[POSES_KEY] = {**trainer.corrections.summary(), "config": config.pose_opt.model_dump(mode="json")}
     world_map = reader.map if reader.layout.map.is_file() else None
-    save(out_dir, Bundle(trainer.params.snapshot().spatially_sorted(), rig, world_map, meta, poses=poses))
+    scene = trainer.params.snapshot().to(device="cpu").spatially_sorted()   # a bundle is CPU tensors, as on the CPU
+    save(out_dir, Bundle(scene, rig, world_map, meta, poses=poses))
     if (out_dir / METRICS_FILE).is_file():
         plot_metrics(out_dir / METRICS_FILE, out_dir / "metrics.png")
     log(f"wrote {out_dir}: {len(trainer.params)} Gaussians after {trainer.step} iterations "

@@ -19,15 +19,18 @@ __all__ = ["CameraResponse"]
 
 
 class CameraResponse:
-    """Learnable ``image * gain[camera] * (1 + v1 r^2 + v2 r^4)`` with r the radius relative to the lens circle."""
+    """Learnable ``image * gain[camera] * (1 + v1 r^2 + v2 r^4)`` with r the radius relative to the lens circle.
 
-    def __init__(self, rig: Rig, lr: float) -> None:
+    Its parameters and radius maps live on ``device`` (the images' device: the CPU by default).
+    """
+
+    def __init__(self, rig: Rig, lr: float, device: torch.device | None = None) -> None:
         self.names = list(rig.names)
         n = len(self.names)
-        self.log_gain = torch.zeros(n, 3, requires_grad=lr > 0)
-        self.vignetting = torch.zeros(n, 2, requires_grad=lr > 0)
+        self.log_gain = torch.zeros(n, 3, device=device, requires_grad=lr > 0)
+        self.vignetting = torch.zeros(n, 2, device=device, requires_grad=lr > 0)
         self.optimizer = torch.optim.Adam([self.log_gain, self.vignetting], lr=lr) if lr > 0 else None
-        self._r2 = {name: self._radius2(rig, name) for name in self.names}
+        self._r2 = {name: self._radius2(rig, name).to(device) for name in self.names}
 
     @staticmethod
     def _radius2(rig: Rig, name: str) -> Tensor:

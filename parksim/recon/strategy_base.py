@@ -23,7 +23,8 @@ __all__ = ["Strategy", "StepInfo", "ViewInfo"]
 
 @dataclass(frozen=True)
 class ViewInfo:
-    """A view rendered this step: camera centre in the world ``[3]``, focal length and image width in pixels."""
+    """A view rendered this step: camera centre in the world ``[3]`` (on the Gaussians' device), focal length and
+    image width in pixels."""
 
     centre: Tensor
     focal: float
@@ -32,7 +33,8 @@ class ViewInfo:
 
 @dataclass(frozen=True)
 class StepInfo:
-    """One iteration as the hooks see it: its number (1 for the first), views, position lr and the run's RNG."""
+    """One iteration as the hooks see it: its number (1 for the first), views, position lr and the run's RNG on the
+    Gaussians' device (the trainer's only generator on the CPU)."""
 
     step: int
     views: list[ViewInfo]
@@ -48,8 +50,8 @@ class Strategy(ABC):
         """Take this strategy's part of ``densify``; ``extent`` is 3DGS's scene scale."""
 
     def step_pre_backward(self, params: GaussianParams, info: StepInfo) -> Tensor:
-        """The strategy's term added to the loss (none by default)."""
-        return torch.zeros(())
+        """The strategy's term added to the loss (none by default), on the Gaussians' device."""
+        return params["means"].new_zeros(())
 
     def step_post_backward(self, params: GaussianParams, info: StepInfo) -> None:  # noqa: B027 (an optional hook)
         """Read gradients before the optimizer moves the parameters (nothing by default)."""

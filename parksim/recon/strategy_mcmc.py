@@ -1,10 +1,12 @@
-"""3DGS as Markov Chain Monte Carlo (Kheradmand et al. 2024), following gsplat's ``MCMCStrategy``, on the CPU.
+"""3DGS as Markov Chain Monte Carlo (Kheradmand et al. 2024), following gsplat's ``MCMCStrategy``, on any device.
 
 Every ``refine_every`` steps: dead Gaussians (opacity below ``min_opacity``) are relocated onto live ones
 sampled by opacity, and ``grow_rate`` more are added the same way up to ``cap_max``; a sampled Gaussian
 and its copies share its opacity and scale by the paper's correction so that the rendered distribution
 is unchanged. Every step: position noise shaped by each covariance, gated to low-opacity Gaussians.
-Loss regularisers on mean opacity and mean scale drive unneeded Gaussians to die.
+Loss regularisers on mean opacity and mean scale drive unneeded Gaussians to die. Everything runs on the
+Gaussians' device with the step's generator (which must be on that device too); off the CPU the per-step noise is
+computed for every Gaussian and gated there, so the step needs no host synchronisation.
 """
 
 from __future__ import annotations
@@ -37,6 +39,16 @@ def _relocation_weights() -> Tensor:
 
 
 _WEIGHTS = _relocation_weights()
+_DEVICE_WEIGHTS: dict[torch.device, Tensor] = {}
+
+
+def _weights_on(device: torch.device) -> Tensor:
+    """``_WEIGHTS`` on ``device`` (copied once per device)."""
+    if device.type == "cpu":
+        return _WEIGHTS
+    if device not in _DEVICE_WEIGHTS:
+        _DEVICE_WEIGHTS[device] = _WEIGHTS.to(device)
+    return _DEVICE_WEIGHTS[device]
 
 
 def relocation_correction(opacity: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tensor, Tensor]:
@@ -48,8 +60,8 @@ def relocation_correction(opacity: Tensor, scales: Tensor, copies: Tensor) -> tu
     n = copies.clamp(1, N_MAX).long()
     o = opacity.to(torch.float64)
     new_o = 1.0 - (1.0 - o) ** (1.0 / n)
-    powers = new_o[:, None] ** torch.arange(1, N_MAX + 1, dtype=torch.float64)
-    denom = (_WEIGHTS[n] * powers).sum(dim=1)
+    powers = new_o[:, None] ** torch.arange(1, N_MAX + 1, dtype=torch.float64, device=o.device)
+    denom = (_weights_on(n.device)[n] * powers).sum(dim=1)
     new_scales = (o / denom)[:, None] * scales.to(torch.float64)
     return new_o.to(opacity.dtype), new_scales.to(scales.dtype)
 
@@ -110,7 +122,7 @@ class MCMCStrategy(Strategy):
         n_new = max(0, min(self.cfg.cap_max, int((1.0 + self.cfg.grow_rate) * n)) - n)
         if n_new == 0:
             return 0
-        picked, corrected = self._sample(params, torch.arange(n), n_new, generator)
+        picked, corrected = self._sample(params, torch.arange(n, device=params["means"].device), n_new, generator)
         params.overwrite(picked, corrected)
         params.append({name: params[name].detach()[picked] for name in NAMES})
         return n_new
@@ -118,12 +130,19 @@ class MCMCStrategy(Strategy):
     def _inject_noise(self, params: GaussianParams, scale: float, generator: torch.Generator) -> None:
         """Add ``scale * Sigma * eps * gate(opacity)`` to the means (Sigma = R S^2 R^T).
 
-        Only Gaussians whose gate exceeds ``_GATE_MIN`` move (the rest would move by < 1e-8 of the noise).
+        Only Gaussians whose gate exceeds ``_GATE_MIN`` move (the rest would move by < 1e-8 of the noise): on the
+        CPU those are picked out first, on a GPU the noise of the others is zeroed (no data-dependent shape).
         """
         if scale == 0:
             return
-        eps = torch.randn(params["means"].shape, generator=generator)
+        means = params["means"]
+        eps = torch.randn(means.shape, generator=generator, device=means.device)
         gate = _op_sigmoid(1.0 - torch.sigmoid(params["opacity_logits"].detach()))
+        if means.device.type != "cpu":
+            L = covariance_sqrt(params["quats"].detach(), params["log_scales"].detach())
+            noise = (L @ (L.transpose(1, 2) @ (eps * gate[:, None] * scale)[:, :, None])).squeeze(2)
+            means.data.add_(torch.where((gate > _GATE_MIN)[:, None], noise, 0.0))
+            return
         moving = (gate > _GATE_MIN).nonzero().squeeze(1)
         L = covariance_sqrt(params["quats"].detach()[moving], params["log_scales"].detach()[moving])
         noise = (L @ (L.transpose(1, 2) @ (eps[moving] * gate[moving, None] * scale)[:, :, None])).squeeze(2)

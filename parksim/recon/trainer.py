@@ -9,6 +9,12 @@ each iteration renders the four cameras of a random train frame and minimises ``
 L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rate schedule (``schedule_iterations``).
 With pose refinement on (``pose_opt``, ``parksim.recon.pose_refine``) the photometric phase also trains a correction per
 frame's ego pose (per image for per-image datasets) and per camera's extrinsics; the slot-aware phase keeps them.
+
+The run trains on ``run.device`` (``parksim.device.resolve_device``): the Gaussians, their Adam state, the images,
+masks, poses, camera response and detector live there, and so do the strategy's random draws (a generator on that
+device; the views each step renders are drawn on the CPU, as is the initial point cloud). Off the CPU a step reads
+nothing back to the host: its loss and PSNR stay tensors until a metrics line is written (``run.log_every``).
+Checkpoints hold CPU tensors, so a run resumes on any device.
 """
 
 from __future__ import annotations
@@ -24,10 +30,11 @@ from torch import Tensor
 from tqdm import tqdm
 
 from parksim.data import DatasetReader
+from parksim.device import describe_device, resolve_device
 from parksim.gaussians import GaussianScene
 from parksim.render import render
 
-from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint
+from .checkpoint import checkpoint_path, load_checkpoint, save_checkpoint, tensors_to
 from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
 from .detectors import Detector
@@ -36,7 +43,7 @@ from .heap import keep_freed_memory
 from .init import initial_scene
 from .losses import photometric_loss, sum_terms
 from .masks import scene_mask
-from .metrics import psnr
+from .metrics import psnr, psnr_tensor
 from .metrics_log import METRICS_FILE, append_record, cut_back
 from .params import GaussianParams
 from .pose_refine import PoseCorrections, align_poses, refinement_enabled
@@ -45,7 +52,7 @@ from .schedule import exp_decay, sh_degree_at
 from .slot_aware import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, spec_of
 from .strategy import StepInfo, ViewInfo, make_strategy
 
-__all__ = ["Trainer", "scene_extent", "METRICS_FILE"]
+__all__ = ["Trainer", "scene_extent", "host_record", "METRICS_FILE"]
 
 
 def scene_extent(reader: DatasetReader) -> float:
@@ -59,6 +66,18 @@ def scene_extent(reader: DatasetReader) -> float:
     """
     centres = reader.camera_centres()
     return max(1.0, 1.1 * float((centres - centres.mean(0)).norm(dim=1).max()))
+
+
+def host_record(record: dict[str, Any]) -> dict[str, Any]:
+    """A step's record (``Trainer.iteration``) with every tensor in it read back as a float.
+
+    Args:
+        record: the record; on the CPU it holds no tensors and comes back equal.
+
+    Returns:
+        A record of plain values for the metrics log.
+    """
+    return {k: float(v) if isinstance(v, Tensor) else v for k, v in record.items()}
 
 
 @dataclass
@@ -93,25 +112,33 @@ class Trainer:
 
         Raises:
             ValueError: the split has no training frames.
+            DeviceError: ``config.run.device`` names a GPU this machine lacks (before anything is set up).
         """
+        self.device = resolve_device(config.run.device)
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
         keep_freed_memory()   # every step reuses its large buffers' pages (recon/heap.py)
         self.rig = reader.rig
         self.generator = torch.Generator().manual_seed(config.run.seed)
+        self.device_generator = (self.generator if self.device.type == "cpu"
+                                 else torch.Generator(self.device).manual_seed(config.run.seed))
         self.views = [(f, c) for f in reader.split["train"] for c in self.rig.names]
         if not self.views:
             raise ValueError(f"{reader.layout.root}: no training frames")
         self.test_views = [(f, c) for f in reader.split["test"] for c in self.rig.names][::config.run.eval_stride]
-        self.masks = {c: scene_mask(self.rig.cameras[c], self.rig.bev).to(torch.float32)[None, None]
+        self.masks = {c: scene_mask(self.rig.cameras[c], self.rig.bev).to(device=self.device,
+                                                                           dtype=torch.float32)[None, None]
                       for c in self.rig.names}
+        self._extrinsics = {c: self.rig.cameras[c].T_vehicle_camera.to(self.device) for c in self.rig.names}
         self.extent = scene_extent(reader)
-        self.response = CameraResponse(self.rig, config.lr.response)
+        self.response = CameraResponse(self.rig, config.lr.response, self.device)
         self.strategy = make_strategy(config.densify, self.extent)
         self.params: GaussianParams | None = None
         self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
         self._images: dict[tuple[int, str], Tensor] = {}
+        self._poses: dict[tuple[int, str], Tensor] = {}
         self.slot_step = self._slot_step(detector)
-        self.corrections = (PoseCorrections(reader, self.rig, config.pose_opt, config.schedule_iterations)
+        self.corrections = (PoseCorrections(reader, self.rig, config.pose_opt, config.schedule_iterations,
+                                            device=self.device)
                             if refinement_enabled(config.pose_opt, reader.meta) else None)
         if self.corrections is not None:
             self.log(f"pose refinement on: a correction per {'image' if self.corrections.per_image else 'frame'}"
@@ -131,8 +158,8 @@ class Trainer:
         if detector is None and spec_of(sa.variant).uses_detector:
             self.log("slot-aware phase off: slot_aware.detector is not set")
             return None
-        return SlotAwareStep(self.rig, detector, sa, self.cfg.photometric.ssim_lambda, self.cfg.run.backend,
-                             self.response)
+        return SlotAwareStep(self.rig, detector.to(self.device) if detector is not None else None, sa,
+                             self.cfg.photometric.ssim_lambda, self.cfg.run.backend, self.response)
 
     @property
     def total_iterations(self) -> int:
@@ -154,10 +181,10 @@ class Trainer:
         """
         if scene is None:
             scene, self.init_note = initial_scene(self.reader, self.cfg.init, self.cfg.photometric.sh_degree,
-                                                  self.generator)
+                                                  self.generator, self.device)
         else:
             self.init_note = f"a given scene of {len(scene)} Gaussians"
-        self.params = GaussianParams.from_scene(scene, self.cfg.photometric.sh_degree, self._lrs())
+        self.params = GaussianParams.from_scene(scene, self.cfg.photometric.sh_degree, self._lrs(), self.device)
         self.log(f"initialised {len(scene)} Gaussians from {self.init_note}; scene extent {self.extent:.1f} m")
 
     def resume(self, state: dict[str, Any]) -> None:
@@ -167,9 +194,10 @@ class Trainer:
             state: a checkpoint as ``state()`` wrote it (``parksim.recon.checkpoint.load_checkpoint``).
 
         Raises:
-            ValueError: the checkpoint was written with another config, or without the pose corrections this run has.
+            ValueError: the checkpoint was written with another config (its ``run.device`` may differ: a run resumes
+                on any device), or without the pose corrections this run has.
         """
-        if parse_config(state["config"], "checkpoint config") != self.cfg:
+        if not parse_config(state["config"], "checkpoint config").same_run(self.cfg):
             raise ValueError("the checkpoint was written with a different config; resume with the run's config.yaml")
         self._restore(state)
 
@@ -198,12 +226,27 @@ class Trainer:
         self._restore(state)
 
     def _restore(self, state: dict[str, Any]) -> None:
-        """Load ``state`` into this trainer, whichever way it was checked."""
-        self.params = GaussianParams(state["params"], self._lrs())
-        self.params.optimizer.load_state_dict(state["optimizer"])
+        """Load ``state`` (CPU tensors, from any device) onto this trainer's device, whichever way it was checked.
+
+        The device generator continues from the checkpoint's when it was written on the same kind of device; else
+        (a CPU checkpoint on a GPU, a GPU's on the CPU) it is reseeded from the seed and the iteration.
+
+        Args:
+            state: the checkpoint.
+
+        Raises:
+            ValueError: this run refines poses and the checkpoint holds no corrections.
+        """
+        self.params = GaussianParams(state["params"], self._lrs(), self.device)
+        self.params.optimizer.load_state_dict(state["optimizer"])   # moves Adam's moments to the parameters' device
         self.response.load_state_dict(state["response"])
-        self.strategy.load_state_dict(state["strategy"])
+        self.strategy.load_state_dict(tensors_to(state["strategy"], self.device))
         self.generator.set_state(state["rng"])
+        if self.device_generator is not self.generator:
+            if state.get("rng_device_type") == self.device.type:
+                self.device_generator.set_state(state["rng_device"])
+            else:
+                self.device_generator.manual_seed(self.cfg.run.seed + int(state["iteration"]))
         self.step, self.elapsed, self.init_note = int(state["iteration"]), float(state["elapsed"]), state["init"]
         self.cpu = float(state["cpu"])
         if self.corrections is not None:
@@ -216,14 +259,17 @@ class Trainer:
         """Everything ``resume`` needs.
 
         Returns:
-            Iteration, timings, parameters (cloned), optimizer, response, strategy and RNG states, the config as
-            JSON values and the pose corrections when refining.
+            Iteration, timings, parameters (cloned), optimizer, response, strategy and RNG states (off the CPU also
+            the device generator's, ``rng_device``, and its device type), the config as JSON values and the pose
+            corrections when refining; tensors on this trainer's device (``save_checkpoint`` moves them to the CPU).
         """
         assert self.params is not None
+        device_rng = ({} if self.device_generator is self.generator else
+                      {"rng_device": self.device_generator.get_state(), "rng_device_type": self.device.type})
         return {"iteration": self.step, "elapsed": self.elapsed, "cpu": self.cpu, "init": self.init_note,
                 "params": {k: v.detach().clone() for k, v in self.params.tensors.items()},
                 "optimizer": self.params.optimizer.state_dict(), "response": self.response.state_dict(),
-                "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(),
+                "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(), **device_rng,
                 "config": self.cfg.model_dump(mode="json"),
                 **({"pose_opt": self.corrections.state_dict()} if self.corrections is not None else {})}
 
@@ -238,14 +284,32 @@ class Trainer:
         """
         tests = [(f, c) for f in self.reader.split["test"] for c in self.rig.names]
         decoded = self.reader.images(self.views + tests, progress=self.cfg.run.progress)
-        self._images = {view: decoded[view] for view in self.views}
+        self._images = {view: decoded[view].to(self.device) for view in self.views}
 
     # --- one iteration -----------------------------------------------------------------------
     def _image(self, frame: int, camera: str) -> Tensor:
+        """A training image ``[H, W, 3]`` on the device (decoded and copied there once)."""
         key = (frame, camera)
         if key not in self._images:
-            self._images[key] = self.reader.image(camera, frame)
+            self._images[key] = self.reader.image(camera, frame).to(self.device)
         return self._images[key]
+
+    def _view_pose(self, camera: str, frame: int) -> Tensor:
+        """The ``T_world_vehicle`` a view renders at, on the device.
+
+        Args:
+            camera: the view's camera.
+            frame: the view's frame.
+
+        Returns:
+            ``[4, 4]`` float64: the refined pose when refining, else the dataset's (copied to the device once).
+        """
+        if self.corrections is not None:
+            return self.corrections.view_pose(camera, frame)
+        key = (frame, camera)
+        if key not in self._poses:
+            self._poses[key] = self.reader.view_pose(camera, frame).to(self.device)
+        return self._poses[key]
 
     def _render_batch(self, sh_degree: int) -> _Batch:
         assert self.params is not None
@@ -254,8 +318,7 @@ class Trainer:
         batch = _Batch([], [], [], [])
         for i in picks:
             frame, camera = self.views[i]
-            pose = (self.reader.view_pose(camera, frame) if self.corrections is None
-                    else self.corrections.view_pose(camera, frame))
+            pose = self._view_pose(camera, frame)
             image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend,
                            method=self.cfg.run.projection).images[camera]
             batch.preds.append(self.response(image, camera))
@@ -266,7 +329,7 @@ class Trainer:
 
     def _view_info(self, pose: Tensor, camera: str) -> ViewInfo:
         cam = self.rig.cameras[camera]
-        return ViewInfo((pose @ cam.T_vehicle_camera)[:3, 3], float(cam.model.fx), cam.model.width)
+        return ViewInfo((pose @ self._extrinsics[camera])[:3, 3], float(cam.model.fx), cam.model.width)
 
     def _slot_batch(self, sh_degree: int) -> tuple[_Batch, SlotAwareTerms]:
         """Slot-aware phase: all cameras of one random train frame, with the step's loss terms."""
@@ -285,7 +348,7 @@ class Trainer:
         """The ego pose the slot-aware phase renders at: the refined one, frozen with the refined rig, when refining."""
         assert self.slot_step is not None
         if self.corrections is None:
-            return self.reader.pose(frame)
+            return self.reader.pose(frame).to(self.device)
         if self.slot_step.rig is self.rig:
             self.slot_step.rig = self.corrections.refined_rig()
         return self.corrections.ego_pose(frame).detach()
@@ -303,7 +366,9 @@ class Trainer:
 
         Returns:
             ``iteration``, ``loss``, ``rgb_loss``, train ``psnr`` of the first view, ``gaussians``, ``sh_degree``,
-            ``means_lr``, the strategy's refinement counts and, in phase 2, the slot-aware terms.
+            ``means_lr``, the strategy's refinement counts and, in phase 2, the slot-aware terms. Off the CPU the
+            photometric phase's ``loss``, ``rgb_loss`` and ``psnr`` are 0-dim device tensors (``float()`` reads
+            one; ``host_record`` all), so that a step does not wait for the GPU.
         """
         assert self.params is not None
         ph = self.cfg.photometric
@@ -318,7 +383,7 @@ class Trainer:
         else:
             batch, terms = self._slot_batch(sh_degree)
             rgb, objective, slot = terms.rgb, terms.total, terms.record()
-        info = StepInfo(self.step + 1, batch.infos, means_lr, self.generator)
+        info = StepInfo(self.step + 1, batch.infos, means_lr, self.device_generator)
         loss = objective + self.strategy.step_pre_backward(self.params, info)
         loss.backward()
         self.strategy.step_post_backward(self.params, info)
@@ -330,10 +395,15 @@ class Trainer:
         self.step += 1
         refine = self.strategy.step_post_update(self.params, info)
         with torch.no_grad():
-            train_psnr = psnr(batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0)
-        return {"iteration": self.step, "loss": float(loss.detach()), "rgb_loss": float(rgb.detach()),
+            pred, gt, mask = batch.preds[0].clamp(0, 1), batch.gts[0], batch.masks[0][0, 0] > 0
+            train_psnr = psnr(pred, gt, mask) if self.device.type == "cpu" else psnr_tensor(pred, gt, mask)
+        return {"iteration": self.step, "loss": self._number(loss), "rgb_loss": self._number(rgb),
                 "psnr": train_psnr, "gaussians": len(self.params), "sh_degree": sh_degree, "means_lr": means_lr,
                 **refine, **{k: v for k, v in slot.items() if k not in ("loss", "rgb_loss")}}
+
+    def _number(self, value: Tensor) -> float | Tensor:
+        """A loss for the step's record: a float on the CPU; off it the detached 0-dim tensor (read when logged)."""
+        return float(value.detach()) if self.device.type == "cpu" else value.detach()
 
     # --- the run ------------------------------------------------------------------------------
     def evaluate(self) -> dict[str, float | None]:
@@ -362,31 +432,37 @@ class Trainer:
     def train(self, stop_after: int | None = None) -> None:
         """Run to ``total_iterations`` (or stop once ``stop_after`` iterations are done).
 
-        Appends metrics every ``run.log_every`` steps (and test metrics every ``run.eval_every``) and checkpoints
-        every ``run.checkpoint_every`` steps and at the end.
+        Says which device it trains on (one log line), appends metrics every ``run.log_every`` steps (and test
+        metrics every ``run.eval_every``) and checkpoints every ``run.checkpoint_every`` steps and at the end.
 
         Args:
             stop_after: the iteration to stop at (None: the end).
         """
         run, total = self.cfg.run, self.total_iterations
         end = total if stop_after is None else min(total, stop_after)
+        self.log(f"training on {describe_device(self.device)}")
         bar = tqdm(total=total, initial=self.step, desc="reconstruct", unit="it", disable=not run.progress,
                    dynamic_ncols=True)
         with compile_notice(), bar:
             while self.step < end:
                 start, start_cpu = time.perf_counter(), time.process_time()
                 record = self.iteration()
+                logged = self.step % run.log_every == 0 or self.step == total
+                if logged:
+                    record = host_record(record)   # off the CPU: waits for the GPU, so the clock covers the steps
                 self.elapsed += time.perf_counter() - start
                 self.cpu += time.process_time() - start_cpu
                 clock = {"elapsed_s": self.elapsed, "cpu_s": self.cpu}
-                if self.step % run.log_every == 0 or self.step == total:
+                if logged:
                     append_record(self.out / METRICS_FILE, {**record, **clock})
                 if run.eval_every and (self.step % run.eval_every == 0 or self.step == total) and self.test_views:
                     append_record(self.out / METRICS_FILE, {"iteration": self.step, **clock, **self.evaluate()})
                 if self.step % run.checkpoint_every == 0 or self.step == total:
                     save_checkpoint(checkpoint_path(self.out), self.state())
                 bar.update(1)
-                bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
+                if logged or self.device.type == "cpu":
+                    bar.set_postfix(loss=f"{float(record['loss']):.4f}", psnr=f"{float(record['psnr']):.2f}",
+                                    n=record["gaussians"])
 
     @classmethod
     def from_checkpoint(cls, reader: DatasetReader, config: TrainConfig, out_dir: Path,

@@ -71,8 +71,8 @@ class GCNDetector(Detector):
         """Slots from the edge scores: ordered pairs above ``edge_threshold``, scored by edge x weaker point."""
         if len(points) < 2:
             return []
-        nodes = self.nodes_of(points, size)
-        everyone = torch.ones(1, len(points), dtype=torch.bool)
+        nodes = self.nodes_of(points, size).to(extras.device)
+        everyone = torch.ones(1, len(points), dtype=torch.bool, device=extras.device)
         scores = torch.sigmoid(self.edge_logits(extras[b:b + 1], nodes, everyone))[0]
         candidates = [(float(scores[i, j]) * min(points[i].score, points[j].score), i, j)
                       for i, j in (scores > opts.edge_threshold).nonzero().tolist() if i != j]
@@ -90,8 +90,9 @@ class GCNDetector(Detector):
             if not points:
                 out.append((locations, bev.new_zeros(0, 0)))
                 continue
-            nodes = self.nodes_of(points, (width, height)).to(bev.dtype)
-            logits = self.edge_logits(descriptors[b:b + 1], nodes, torch.ones(1, len(points), dtype=torch.bool))
+            nodes = self.nodes_of(points, (width, height)).to(bev)
+            logits = self.edge_logits(descriptors[b:b + 1], nodes,
+                                      torch.ones(1, len(points), dtype=torch.bool, device=bev.device))
             out.append((locations, torch.sigmoid(logits[0])))
         return out
 

@@ -106,7 +106,7 @@ class SlotAwareStep:
             if self.spec.weights == "slot":
                 weights = self._slot_weights(w_teacher, w_student, gt_bev, pred_bev)
         elif self.spec.weights == "uniform":
-            weights = self.ipm.mask.to(pred_bev.dtype)
+            weights = self.ipm.mask.to(pred_bev)
         ipm = ipm_loss(pred_bev, gt_bev, weights) if self.spec.ipm and weights is not None else zero
         cam = zero
         if self.spec.cam and weights is not None:
@@ -129,11 +129,16 @@ class SlotAwareStep:
 
     @torch.no_grad()
     def _edges(self, bev: Tensor) -> Tensor:
-        """GCN edge-tube map ``[H, W]`` of one BEV (constant: the tubes depend on detected corner locations only)."""
+        """GCN edge-tube map ``[H, W]`` of one BEV (constant: the tubes depend on detected corner locations only).
+
+        The tubes are drawn on the CPU (each around a decoded corner pair, a host-side list) and moved to ``bev``'s
+        device."""
         assert isinstance(self.detector, GCNDetector)
         points, scores = self.detector.edges(_nchw(bev))[0]
         c = self.cfg
-        return edge_weights(points, scores, c.edge_top_k, (bev.shape[0], bev.shape[1]), c.edge_sigma, c.edge_samples)
+        tubes = edge_weights(points.cpu(), scores.cpu(), c.edge_top_k, (bev.shape[0], bev.shape[1]), c.edge_sigma,
+                             c.edge_samples)
+        return tubes.to(bev.device)
 
     def _slot_weights(self, w_teacher: Tensor, w_student: Tensor, gt_bev: Tensor, pred_bev: Tensor) -> Tensor:
         """W_mix' = upsample(W_mix) + lambda_edge W_edge on the IPM's ground area, ``[H, W]``."""
@@ -142,5 +147,5 @@ class SlotAwareStep:
         if isinstance(self.detector, GCNDetector) and self.cfg.lambda_edge > 0 and self.cfg.edge_top_k > 0:
             edges = mix(self._edges(gt_bev), self._edges(pred_bev), self._share(self.cfg.beta))
             weights = weights + self.cfg.lambda_edge * edges
-        return weights * self.ipm.mask.to(weights.dtype)
+        return weights * self.ipm.mask.to(weights)
 
