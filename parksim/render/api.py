@@ -336,12 +336,15 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
     dtype, device = scene.means.dtype, scene.means.device
     background = torch.as_tensor(bg, dtype=dtype, device=device)
     cams = [view.rig.cameras[name] for name in names] * len(poses)
-    T_world_cameras = []
+    T_world_cameras = []   # on the pose's device (the CPU for plain poses): the device path moves them in one copy
     for pose in poses:
-        T_world_vehicle = as_pose(pose).to(device)   # rig, lens masks and background follow the scene's device
-        T_world_cameras += [T_world_vehicle @ cam.T_vehicle_camera.to(device) for cam in cams[:len(names)]]
-    lenses = [view.lens_mask(name, device) for name in names] * len(poses)
-    if _device_path(scene, cams, method, projector):
+        T_world_vehicle = as_pose(pose)
+        T_world_cameras += [T_world_vehicle @ cam.T_vehicle_camera.to(T_world_vehicle) for cam in cams[:len(names)]]
+    lenses = [view.lens_mask(name, device) for name in names] * len(poses)   # cached on the scene's device
+    on_device = _device_path(scene, cams, method, projector)
+    if not on_device:
+        T_world_cameras = [T.to(device) for T in T_world_cameras]
+    if on_device:
         check_device_memory(device, render_bytes(len(scene), len(cams),
                                                  max(c.model.width * c.model.height for c in cams)))
         params = ut_params or UTParams()
