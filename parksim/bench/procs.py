@@ -228,7 +228,8 @@ class Server:
 
 
 @contextlib.contextmanager
-def serve_bundle(scenes: Path, args: Sequence[str] = (), startup_s: float = 300.0) -> Iterator[Server]:
+def serve_bundle(scenes: Path, args: Sequence[str] = (), startup_s: float = 300.0,
+                 log: Path | None = None) -> Iterator[Server]:
     """``parksim serve --scenes SCENES ARGS`` on a free 127.0.0.1 port in a subprocess; yields once /healthz answers.
 
     The server is stopped with SIGTERM (with ``--ray``, its Serve app and any Ray it started go down too), killed
@@ -238,6 +239,7 @@ def serve_bundle(scenes: Path, args: Sequence[str] = (), startup_s: float = 300.
         scenes: a bundle folder or a folder of them.
         args: more ``parksim serve`` options (``--reply-budget-mib``, ``--ray --address ...``).
         startup_s: how long the scenes may take to load.
+        log: a file the server's stderr is written to and kept (default: a temporary file, gone after).
 
     Returns:
         The running server; ``RuntimeError`` with its stderr when it exits or does not answer in time.
@@ -247,7 +249,7 @@ def serve_bundle(scenes: Path, args: Sequence[str] = (), startup_s: float = 300.
     port = free_port()
     cmd = [sys.executable, "-m", "parksim.cli", "serve", "--scenes", str(scenes), "--port", str(port), *args]
     base = f"http://127.0.0.1:{port}"
-    with tempfile.TemporaryFile("w+") as err:
+    with open(log, "w+") if log else tempfile.TemporaryFile("w+") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True)
         try:
             deadline = time.monotonic() + startup_s

@@ -98,6 +98,7 @@ SUITES: dict[str, str] = {
     "ray": "ray:RaySuite",
     "batch": "batch:BatchSuite",
     "env": "env:EnvSuite",
+    "hardening": "hardening:HardeningSuite",
 }
 """Suite name -> ``module:Class`` under ``parksim.bench.suites``."""
 
