@@ -30,7 +30,10 @@ def _post(client: TestClient, body: bytes):
     (b'{"poses": [[' + b"9" * 5_000 + b", 0, 0]]}", "an integer has more than 4300 digits"),
     (b'{"poses": [[12, 0, 0]], "scene": "\xff\xfe"}', "not valid UTF-8: byte 0xff at offset 34"),
     (b'{"poses": [[12, 0, 0]', "not valid JSON: Expecting ',' delimiter at character 21"),
-], ids=["deep", "huge-int", "not-utf8", "malformed"])
+    ('{"poses": [[12, 0, 0]]}'.encode("utf-16-le"), "not UTF-8: it holds NUL bytes"),
+    ('{"poses": [[12, 0, 0]]}'.encode("utf-16"), "UTF-16/32 byte-order mark"),
+    ('{"poses": [[12, 0, 0]]}'.encode("utf-32-be"), "not UTF-8"),
+], ids=["deep", "huge-int", "not-utf8", "malformed", "utf16-le", "utf16-bom", "utf32"])
 def test_unparsable_body_is_400_naming_why(client, body, words):
     r = _post(client, body)
     assert r.status_code == 400 and words in r.json()["detail"], r.text[:300]

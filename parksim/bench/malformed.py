@@ -156,6 +156,10 @@ def _hand_made(key: str, x: float) -> list[Probe]:
     probes += [_post("body", f"POST body: {name}", body) for name, body in bodies.items()]
     probes += [_post("body", "POST body: invalid UTF-8 (0xff)", b'{"poses": [[1, 0, 0]], "scene": "\xff"}'),
                _post("body", "POST body: overlong UTF-8", b'{"poses": [[1, 0, 0]], "scene": "\xc0\xaf"}'),
+               _post("body", "POST body: UTF-16 without a byte-order mark", _poses(f"[{x:g}, 0, 0]")
+                     .encode("utf-16-le")),
+               _post("body", "POST body: UTF-16 with a byte-order mark", _poses(f"[{x:g}, 0, 0]")
+                     .encode("utf-16")),
                _post("body", "POST body: 2 MiB", b'{"poses": [' + b" " * _BIG_BODY + b"]}"),
                _post("body", "POST body: no Content-Length (chunked)", b'{"poses": [[1, 0, 0]]}', chunked=True),
                _post("body", "POST body: a valid body sent as text/plain", _poses(f"[{x:g}, 0, 0]"),

@@ -130,6 +130,12 @@ def _install_errors(app: FastAPI) -> None:
         return _error(exc.status_code, str(detail), getattr(exc, "headers", None))
 
 
+def _utf16_or_32(body: bytes) -> bool:
+    """Whether ``body`` is UTF-16/32 text, which Python's JSON parser would otherwise detect and accept: UTF-8 JSON
+    never holds a raw NUL byte (JSON escapes it), and UTF-16/32 text of ASCII JSON is full of them."""
+    return b"\x00" in body or body.startswith((b"\xff\xfe", b"\xfe\xff"))
+
+
 def _install_middleware(app: FastAPI, settings: Settings, metrics: Metrics) -> None:
     """Host check, body size limit and per-request metrics (labelled by route template, not by raw path)."""
     limit, hosts = settings.max_body_bytes, settings.allowed_hosts
@@ -146,6 +152,9 @@ def _install_middleware(app: FastAPI, settings: Settings, metrics: Metrics) -> N
         elif request.method in ("POST", "PUT", "PATCH") and bad_length:
             response = _error(413 if length and length.isdigit() else 411,
                               f"the request body must come with a Content-Length of at most {limit} bytes")
+        elif request.method in ("POST", "PUT", "PATCH") and _utf16_or_32(await request.body()):
+            response = _error(400, "the request body is not UTF-8: it holds NUL bytes or a UTF-16/32 byte-order "
+                                   "mark (JSON bodies must be UTF-8)")
         else:
             response = await call_next(request)
         route = request.scope.get("route")
