@@ -3,6 +3,9 @@
 Naming follows ``T_a_b``: the transform that maps points in frame ``b`` into frame ``a``.
 An ego pose is ``T_world_vehicle``; a planner pose ``(x, y, yaw)`` lies on the ground
 (z = 0, roll = pitch = 0) with yaw in radians about the world z axis.
+
+``nearest_rotation`` (numpy) is the one check of a rotation read from a file: what every input that carries one
+(importers, rig files, ``bundle from-ply --transform``) passes its matrices through.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -24,7 +28,17 @@ __all__ = [
     "rotation_from_quaternion",
     "quaternion_from_rotation",
     "as_pose",
+    "nearest_rotation",
+    "ROTATION_TOLERANCE",
+    "ROTATION_ROUNDOFF",
 ]
+
+ROTATION_TOLERANCE = 1e-3
+"""Largest ``max(|R^T R - I|, |det R - 1|)`` (largest entry) of a matrix read as a rotation; see
+``nearest_rotation`` for how it is derived and why it is safe."""
+ROTATION_ROUNDOFF = 1e-12
+"""Float64 round-off, not a tolerance: a matrix off orthonormal by at most this much is a rotation as computed in
+float64 (a few products leave ~1e-15) and is kept bit for bit; a float32 or printed one is off by far more."""
 
 
 def make_transform(rotation: Tensor, translation: Tensor) -> Tensor:
@@ -236,3 +250,53 @@ def as_pose(pose: Tensor | Sequence[float], dtype: torch.dtype = torch.float64) 
         x, y, z, roll, pitch, yaw = values
         return pose_from_xyz_rpy(x, y, z, roll, pitch, yaw, dtype=dtype)
     raise ValueError(f"pose must be a 4x4 matrix, (x, y, yaw) or (x, y, z, roll, pitch, yaw); got {len(values)} values")
+
+
+def nearest_rotation(R: np.ndarray, tol: float = ROTATION_TOLERANCE) -> tuple[np.ndarray, float]:
+    """The proper rotation nearest ``R`` (Frobenius norm, by SVD: ``U V^T``) when ``R`` is one within ``tol``.
+
+    Real files hold rotations rounded: a float32 matrix is off by up to half the float32 spacing at 1
+    (``2^-24`` ~ 6e-8 per entry, spacing 1.2e-7), so ``|R^T R - I| <= 2 sqrt(3) 6e-8`` ~ 2e-7 from the cast alone,
+    a few times more when the writer computed the matrix in float32 (1.1e-6 in a real nerfstudio
+    ``transforms.json``); a matrix printed with 6 decimals is off by up to 5e-7 per entry, which the 3-term dot
+    products of ``R^T R`` accumulate to ``2 sqrt(3) 5e-7`` ~ 1.7e-6 (3e-6 by the cruder ``6 * 5e-7``), and
+    ``det R`` alike. ``ROTATION_TOLERANCE`` = 1e-3 accepts all of these with a margin of ~300 for longer float32
+    chains, and is still safe: a matrix 1e-3 off orthonormal is a rotation with a skew or scale of at most 1e-3
+    (0.06 deg, 1 mm per metre), below what a calibration is good to, while what is not a rotation (a scale of 1 %,
+    a shear, a transposed or mixed-up axis, a reflection with ``|det R - 1| = 2``) is off by 1e-2 or more and
+    stays an error. A reflection is never "fixed": it fails ``|det R - 1|``; an ``R`` that passes (``tol < 1``)
+    has ``det R > 0``, so ``U V^T`` is a proper rotation.
+
+    Args:
+        R: ``[3, 3]`` matrix (any float dtype; computed in float64).
+        tol: largest ``max(|R^T R - I|, |det R - 1|)`` accepted (largest entry), below 1.
+
+    Returns:
+        ``(rotation, correction)``: the ``[3, 3]`` float64 proper rotation and the largest entry of
+        ``|rotation - R|``; ``R`` itself (as float64, bit for bit) and 0.0 when it is a rotation to float64
+        round-off (``ROTATION_ROUNDOFF``).
+
+    Raises:
+        ValueError: ``R`` is not a finite 3x3, or is off by more than ``tol`` (one line with the value).
+
+    Example:
+        >>> c, s = math.cos(0.3), math.sin(0.3)
+        >>> printed = np.round([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], 6)   # as a file holds it
+        >>> R, correction = nearest_rotation(printed)
+        >>> 0 < correction < 1e-6, bool(np.abs(R.T @ R - np.eye(3)).max() < 1e-15)
+        (True, True)
+        >>> nearest_rotation(np.diag([1.0, 1.0, -1.0]))
+        Traceback (most recent call last):
+        ValueError: not a proper rotation (|R^T R - I| or |det R - 1| = 2 > 0.001)
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.isfinite(R).all():
+        raise ValueError(f"not a proper rotation (expected a finite 3x3 matrix, got shape {R.shape})")
+    error = max(float(np.abs(R.T @ R - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1.0))
+    if error > tol:
+        raise ValueError(f"not a proper rotation (|R^T R - I| or |det R - 1| = {error:.2g} > {tol:g})")
+    if error <= ROTATION_ROUNDOFF:
+        return R, 0.0
+    u, _, vt = np.linalg.svd(R)
+    rotation = u @ vt
+    return rotation, float(np.abs(rotation - R).max())

@@ -25,12 +25,12 @@ from .bundle import save as save_bundle
 from .data import DatasetLayout
 from .fileio import atomic_directory
 from .gaussians import GaussianScene, PLYFormatError
-from .geometry import quaternion_from_rotation
+from .geometry import nearest_rotation, quaternion_from_rotation
 from .rig import Rig
 from .sh_rotation import rotate_sh
 
-__all__ = ["FRAMES", "T_parksim_ply", "dataparser_transform", "similarity_parts", "transform_scene", "read_ply",
-           "write_ply", "bundle_from_ply"]
+__all__ = ["FRAMES", "T_parksim_ply", "dataparser_transform", "similarity_parts", "proper_similarity",
+           "transform_scene", "read_ply", "write_ply", "bundle_from_ply"]
 
 FRAMES: dict[str, np.ndarray] = {
     "parksim": np.eye(3),
@@ -44,14 +44,13 @@ parksim: x forward, y left, z up (no change). opencv and colmap: x right, y down
 is that of its upright cameras). opengl (nerfstudio, Blender cameras): x right, y up, z backward.
 """
 
-ORTHOGONAL_TOL = 1e-5
-"""Largest |entry| of ``A A^T / s^2 - I`` a transform may have: matrices printed with 6 decimals pass."""
-
-
 def similarity_parts(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """``(s, Q, t)`` with ``T = [[s Q, t], [0, 0, 0, 1]]``, ``s > 0`` and ``Q`` orthogonal (nearest one by SVD).
+    """``(s, Q, t)`` with ``T = [[s Q, t], [0, 0, 0, 1]]``, ``s > 0`` and ``Q`` orthogonal: ``sign Q`` is the
+    proper rotation nearest ``sign A / s`` (``parksim.geometry.nearest_rotation``, ``sign`` that of ``det A``,
+    ``A`` the 3x3 part), ``Q = A / s`` itself when that is exact.
 
-    ``ValueError`` (one line) unless ``T`` is a finite 4x4 similarity within ``ORTHOGONAL_TOL``.
+    ``ValueError`` (one line) unless ``T`` is a finite 4x4 similarity within ``parksim.geometry.ROTATION_TOLERANCE``
+    (a transform printed with 6 decimals, or cast to float32, is one).
     """
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
@@ -61,13 +60,29 @@ def similarity_parts(T: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
         raise ValueError(f"a transform's last row must be 0 0 0 1, got {T[3].tolist()}")
     A = T[:3, :3]
-    s = abs(float(np.linalg.det(A))) ** (1.0 / 3.0)
-    error = float(np.abs(A @ A.T / s**2 - np.eye(3)).max()) if s > 0 else math.inf
-    if not error <= ORTHOGONAL_TOL:
-        raise ValueError(f"a transform must be a similarity (uniform scale times a rotation or reflection); "
-                         f"its 3x3 part is off by {error:.3g} (tolerance {ORTHOGONAL_TOL:g})")
-    u, _, vt = np.linalg.svd(A)
-    return s, u @ vt, T[:3, 3].copy()
+    det = float(np.linalg.det(A))
+    s = abs(det) ** (1.0 / 3.0)
+    sign = 1.0 if det > 0 else -1.0
+    try:
+        if not s > 0:
+            raise ValueError("not a proper rotation (its determinant is 0)")
+        R, _ = nearest_rotation(sign * A / s)
+    except ValueError as e:
+        raise ValueError(f"a transform must be a similarity (uniform scale times a rotation or reflection): its 3x3 "
+                         f"part over its scale (and the sign of its determinant) is {e}") from None
+    return s, sign * R, T[:3, 3].copy()
+
+
+def proper_similarity(T: np.ndarray) -> tuple[np.ndarray, float]:
+    """``T`` (a similarity, ``similarity_parts``) with its rotation projected: ``[[s Q, t], [0, 0, 0, 1]]``, and
+    the largest entry of ``Q`` that moved, ``|Q - A / s|`` (``T`` itself, as float64, and 0.0 when it was exact)."""
+    s, Q, t = similarity_parts(T)
+    correction = float(np.abs(Q - np.asarray(T, dtype=np.float64)[:3, :3] / s).max())
+    if not correction:
+        return np.asarray(T, dtype=np.float64), 0.0
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = s * Q, t
+    return out, correction
 
 
 def dataparser_transform(data: Mapping[str, Any], source: str = "dataparser transforms") -> np.ndarray:
@@ -168,8 +183,9 @@ def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame:
 
     Returns:
         The bundle as written: Gaussians in Morton order without the absurd ones (``parksim.bundle.drop_absurd``,
-        in ParkSim's frame), ``meta["ply_import"]`` recording the inputs, ``T_parksim_ply`` and ``dropped`` (count
-        per reason).
+        in ParkSim's frame), ``meta["ply_import"]`` recording the inputs, ``T_parksim_ply``, ``dropped`` (count
+        per reason) and ``transform_correction`` (how far ``transform``'s rotation was from a proper one, projected
+        by ``proper_similarity``; 0.0 when exact).
 
     Raises:
         ValueError: a transform that is not a similarity, an unknown frame, unreadable JSON.
@@ -179,8 +195,9 @@ def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame:
         FileExistsError: ``output`` exists and ``overwrite`` is False.
     """
     ply, rig, output = Path(ply), Path(rig), Path(output)
+    correction = 0.0
     if transform is not None:
-        similarity_parts(transform)
+        transform, correction = proper_similarity(transform)
     dataparser = (None if dataparser_transforms is None else
                   dataparser_transform(_read_object(Path(dataparser_transforms)), str(dataparser_transforms)))
     T = T_parksim_ply(frame, transform, dataparser)
@@ -195,7 +212,7 @@ def bundle_from_ply(ply: str | Path, rig: str | Path, output: str | Path, frame:
             "ply_import": {"ply": str(ply.resolve()), "frame": frame,
                            "transform": None if transform is None else np.asarray(transform).tolist(),
                            "dataparser_transform": None if dataparser is None else dataparser.tolist(),
-                           "T_parksim_ply": T.tolist(), "dropped": dropped},
+                           "T_parksim_ply": T.tolist(), "dropped": dropped, "transform_correction": correction},
             "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     bundle = Bundle(scene.spatially_sorted(), rig_model, map_data, meta)
     with atomic_directory(output, overwrite=overwrite) as tmp:

@@ -1,14 +1,17 @@
 """Surround-view rig: named cameras with their pose on the vehicle, and the BEV spec.
 
 A rig file is JSON or YAML (by suffix) holding ``cameras: {name: {intrinsics, T_vehicle_camera}}``
-and ``bev``. Importers read OpenCV fisheye YAML files (K, D, resolution) and WoodScape
-calibration JSON (quaternion + translation extrinsics in ISO 8855, radial_poly intrinsics).
+and ``bev``; a rotation written in float32 or with 6 decimals is projected to the nearest proper rotation
+(``parksim.geometry.nearest_rotation``), with a warning naming the largest correction. Importers read OpenCV
+fisheye YAML files (K, D, resolution) and WoodScape calibration JSON (quaternion + translation extrinsics in
+ISO 8855, radial_poly intrinsics).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +21,7 @@ import torch
 from torch import Tensor
 
 from .camera import CameraModel, OpenCVFisheye, RadialPolyFisheye, camera_from_dict
-from .geometry import make_transform, rotation_from_quaternion
+from .geometry import make_transform, nearest_rotation, rotation_from_quaternion
 
 __all__ = ["BEVSpec", "RigCamera", "Rig", "CalibrationError", "read_opencv_yaml"]
 
@@ -134,24 +137,33 @@ class RigCamera:
     Attributes:
         name: the camera's name in the rig.
         model: its lens model (intrinsics).
-        T_vehicle_camera: ``(4, 4)`` float64 camera -> vehicle transform (OpenCV camera axes).
+        T_vehicle_camera: ``(4, 4)`` float64 camera -> vehicle transform (OpenCV camera axes), its rotation
+            projected to the nearest proper rotation (``parksim.geometry.nearest_rotation``).
+        rotation_correction: the largest entry that projection changed (0.0: the rotation was exact, kept bit
+            for bit).
 
     Raises:
-        CalibrationError: ``T_vehicle_camera`` is not a finite 4x4 with a proper rotation (tolerance 1e-6).
+        CalibrationError: ``T_vehicle_camera`` is not a finite 4x4 whose rotation is a proper rotation within
+            ``parksim.geometry.ROTATION_TOLERANCE``.
     """
 
     name: str
     model: CameraModel
     T_vehicle_camera: Tensor
+    rotation_correction: float = field(default=0.0, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Check ``T_vehicle_camera`` and store it as a float64 tensor."""
+        """Check ``T_vehicle_camera``, project its rotation and store it as a float64 tensor."""
         T = torch.as_tensor(self.T_vehicle_camera, dtype=torch.float64)
         if T.shape != (4, 4) or not torch.isfinite(T).all():
             raise CalibrationError(f"camera {self.name!r}: T_vehicle_camera must be a finite 4x4 matrix")
-        R = T[:3, :3]
-        if (R @ R.T - torch.eye(3, dtype=torch.float64)).abs().max() > 1e-6 or torch.det(R) < 0:
-            raise CalibrationError(f"camera {self.name!r}: T_vehicle_camera rotation is not a proper rotation")
+        try:
+            R, self.rotation_correction = nearest_rotation(T[:3, :3].detach().cpu().numpy())
+        except ValueError as e:
+            raise CalibrationError(f"camera {self.name!r}: T_vehicle_camera rotation is {e}") from None
+        if self.rotation_correction:
+            T = T.detach().clone()
+            T[:3, :3] = torch.from_numpy(R).to(T.device)
         self.T_vehicle_camera = T
 
 
@@ -192,7 +204,8 @@ class Rig:
             source: what to name in error messages (the file it came from).
 
         Returns:
-            The rig, cameras in the mapping's order.
+            The rig, cameras in the mapping's order; a warning names the largest rotation projected
+            (``RigCamera.rotation_correction``) when a rotation was not exact.
 
         Raises:
             CalibrationError: no cameras, a camera whose intrinsics or transform are refused, or a bad BEV spec.
@@ -210,6 +223,11 @@ class Rig:
             bev = BEVSpec.from_dict(d.get("bev") or {})
         except TypeError as e:
             raise CalibrationError(f"{source}: bad BEV spec: {e}") from None
+        corrected = {n: c.rotation_correction for n, c in cams.items() if c.rotation_correction}
+        if corrected:
+            worst = max(corrected, key=corrected.__getitem__)
+            warnings.warn(f"{source}: T_vehicle_camera of {len(corrected)} camera(s) projected to the nearest proper "
+                          f"rotation (largest correction {corrected[worst]:.2g}, camera {worst!r})", stacklevel=2)
         return cls(cams, bev)
 
     def save(self, path: str | Path) -> None:

@@ -79,14 +79,14 @@ def _nan_pose(rec: Recording) -> None:
 @pytest.mark.parametrize("spoil, message", [
     (_bad_rotation, "ego pose of frame 2: not a proper rotation"),
     (_decreasing_time, "strictly increasing: frame 3"),
-    (_wrong_size, "camera 'rear' frame 4: image is 32x25 but the calibration says 32x24"),
+    (_wrong_size, r"--strict: image is 32x25 but the calibration says 32x24 \(camera 'rear', frame 4\)"),
     (_nan_pose, "ego pose of frame 1: expected a finite 4x4"),
 ])
 def test_bad_recordings_write_nothing(tmp_path: Path, spoil, message) -> None:
     rec = _recording(np.random.default_rng(1))
     spoil(rec)
     with pytest.raises(RecordingError, match=message):
-        write_recording(rec, tmp_path / "ds", "test", progress=False)
+        write_recording(rec, tmp_path / "ds", "test", progress=False, strict=True)
     assert list(tmp_path.iterdir()) == []
 
 

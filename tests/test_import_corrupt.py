@@ -15,7 +15,7 @@ from parksim.bench.rig_logs import image_folders, stamp_name, write_rig_log
 from parksim.cli import main
 from parksim.data import DatasetReader
 from parksim.importers.images import TRUNCATED, image_defect
-from parksim.importers.recording import REPORT_FILE
+from parksim.importers.recording import REPORT_FILE, UNREADABLE_IMAGE
 
 CUT = {(3, "front"): 0.6, (8, "left"): 0.97}
 """(frame, camera) -> the share of its file's bytes kept: 60 % loses half the rows, 97 % only the last few."""
@@ -126,9 +126,11 @@ def test_a_camera_with_every_image_truncated_is_one_line_exit_2(exported: Path, 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]
 
 
-def test_an_image_that_does_not_decode_is_one_line_naming_it(exported: Path, tmp_path: Path, capfd) -> None:
-    """A whole file with broken data (a PNG whose pixel chunk fails its CRC): the decoder's own message joins the
-    one line of the error instead of printing a line of its own before it."""
+def test_an_image_that_does_not_decode_is_dropped_or_with_strict_one_line_naming_it(exported: Path, tmp_path: Path,
+                                                                                     capfd) -> None:
+    """A whole file with broken data (a PNG whose pixel chunk fails its CRC): its frame is dropped with the
+    decoder's own message in the report, or with --strict that message joins the one line of the error instead of
+    printing a line of its own before it."""
     src = tmp_path / "src"
     shutil.copytree(exported, src)
     bad = src / "images" / "rear" / "000005.jpg"
@@ -136,6 +138,14 @@ def test_an_image_that_does_not_decode_is_one_line_naming_it(exported: Path, tmp
     at = png.index(b"IDAT") + 20
     bad.write_bytes(png[:at] + bytes([png[at] ^ 0xFF]) + png[at + 1:])
     assert image_defect(bad) is None
-    code, err = _import(["nerfstudio", str(src)], tmp_path / "out", capfd)
+    code, err = _import(["nerfstudio", str(src)], tmp_path / "ds", capfd)
+    assert code == 0 and "libpng" not in err, err
+    report = json.loads((tmp_path / "ds" / REPORT_FILE).read_text())
+    assert report["dropped_by_reason"] == {UNREADABLE_IMAGE: 1}
+    (item,) = report["dropped_items"]
+    assert (item["camera"], item["frame"]) == ("rear", 5) and 5 not in DatasetReader(tmp_path / "ds").frames
+    assert f"{bad}: cannot decode the image" in item["detail"] and "libpng error" in item["detail"], item
+    code, err = _import(["nerfstudio", str(src), "--strict"], tmp_path / "out", capfd)
     assert code == 2
     assert err.count("\n") == 1 and f"{bad}: cannot decode the image" in err and "libpng error" in err, err
+    assert not (tmp_path / "out").exists()

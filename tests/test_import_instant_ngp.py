@@ -133,10 +133,6 @@ def test_blender_style_file_through_the_python_entry_point(tiny: Path, tmp_path:
     assert ("undistorted" in report) == bool(distortion)
 
 
-def _no_image(src: Path, meta: dict) -> None:
-    (src / "train" / "r_3.png").unlink()
-
-
 def _ftheta(src: Path, meta: dict) -> None:
     meta["frames"][1]["ftheta_p0"] = 1.0
 
@@ -150,7 +146,6 @@ def _no_focal(src: Path, meta: dict) -> None:
 
 
 @pytest.mark.parametrize("spoil, message", [
-    (_no_image, "frames[1] (./train/r_3): image file not found"),
     (_ftheta, "frames[1] (./train/r_3.png): instant-ngp's FTheta lens is not supported"),
     (_k3_perspective, "k3, k4 belong to is_fisheye lenses"),
     (_no_focal, "frames[0] (./train/r_0.png): no focal length"),

@@ -326,12 +326,6 @@ def _decreasing_time(tiny: Path, log: Path, tmp: Path) -> list[str]:
             "--images", str(log / "images")]
 
 
-def _wrong_size_image(tiny: Path, log: Path, tmp: Path) -> list[str]:
-    image_folders(tiny, tmp / "images")
-    cv2.imwrite(str(tmp / "images" / "left" / stamp_name(0.4)), np.zeros((80, 100, 3), np.uint8))
-    return ["--calib", str(log / "calib"), "--poses", str(log / "poses.csv"), "--images", str(tmp / "images")]
-
-
 def _unreadable_video(tiny: Path, log: Path, tmp: Path) -> list[str]:
     (tmp / "rear.mp4").write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
     video = {c: log / "video" / f"{c}.mp4" for c in ("front", "left", "right")} | {"rear": tmp / "rear.mp4"}
@@ -355,7 +349,6 @@ def _sfm_flags(tiny: Path, log: Path, tmp: Path) -> list[str]:
     (_sfm_flags, "--scale, --camera-height apply to per-image (SfM) poses fitted to a rig; this recording has ego"),
     (_non_unit_quaternion, "poses.csv line 6: quaternion (qw, qx, qy, qz) = [1.2, "),
     (_decreasing_time, "poses.csv line 7: timestamp 0.35 does not follow 0.4; timestamps must increase strictly"),
-    (_wrong_size_image, "0000000000400000000.png: image is 100x80 but camera 'left' is calibrated at 160x120"),
     (_unreadable_video, "rear.mp4: cannot open the video (missing, unreadable or unsupported)"),
     (_no_extrinsics, "front.yaml: OpenCV fisheye YAML (camera_matrix, dist_coeffs, resolution) has no extrinsics"),
 ])

@@ -28,7 +28,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                      help="the PLY world's axes: parksim x forward, y left, z up; opencv and colmap x right, "
                           "y down, z forward; opengl x right, y up, z backward")
     ply.add_argument("--transform", nargs="+", metavar="T",
-                     help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major")
+                     help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major "
+                          "(a rotation within 1e-3 of one, as printed with 6 decimals, is projected to it)")
     ply.add_argument("--dataparser-transforms", type=Path, metavar="JSON",
                      help="nerfstudio's dataparser_transforms.json of the run that trained the PLY: undone first, "
                           "so --frame describes the world nerfstudio was given")
@@ -88,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     span = ", ".join(f"{a} [{lo[i]:.2f}, {hi[i]:.2f}]" for i, a in enumerate("xyz"))
     print(f"wrote {args.output}: {len(scene)} Gaussians, SH degree {scene.sh_degree}, frame {args.frame}; "
           f"1st-99th percentile of the means (m): {span}")
+    correction = bundle.meta["ply_import"]["transform_correction"]
+    if correction:
+        print(f"--transform: rotation projected to the nearest proper rotation (largest correction {correction:.2g})")
     if bundle.map is None:
         print("no map.json (pass --map): render, serve and the viewer work; the gym env and parksim compact "
               "need a map with a garage and slots")

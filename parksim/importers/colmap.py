@@ -27,7 +27,7 @@ import numpy as np
 
 from .base import CheckedOptions, Importer
 from .images import Distortion, frame_number, image_source
-from .recording import Dropped, Recording, RecordingError
+from .recording import Corrections, Dropped, Recording, RecordingError
 
 __all__ = ["ColmapImporter", "ColmapOptions", "ColmapError", "ColmapCamera", "ColmapImage", "ColmapModel",
            "read_model", "recording_from_model", "MODEL_NAMES"]
@@ -41,7 +41,8 @@ PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "O
 """The camera models imported, with their number of parameters."""
 
 QUATERNION_TOLERANCE = 1e-3
-"""Largest deviation of an image quaternion's norm from 1 accepted (text files round); it is then normalised."""
+"""Largest deviation of an image quaternion's norm from 1 accepted (text files round); it is then normalised and
+the deviation reported (``ColmapImage.norm``)."""
 
 
 class ColmapError(RecordingError):
@@ -61,13 +62,15 @@ class ColmapCamera:
 
 @dataclass(frozen=True)
 class ColmapImage:
-    """One ``images`` entry: world -> camera as unit quaternion ``qvec = (w, x, y, z)`` and ``tvec``."""
+    """One ``images`` entry: world -> camera as unit quaternion ``qvec = (w, x, y, z)`` and ``tvec``; ``norm`` is
+    the quaternion's norm in the file (``qvec`` is normalised)."""
 
     image_id: int
     qvec: tuple[float, float, float, float]
     tvec: tuple[float, float, float]
     camera_id: int
     name: str
+    norm: float = 1.0
 
     @property
     def T_camera_world(self) -> np.ndarray:
@@ -131,7 +134,7 @@ def _image(path: Path, where: str, image_id: int, q: tuple[float, ...], t: tuple
         raise ColmapError(f"{path}: {where}image {image_id} ({name}) has a non-finite pose or a quaternion of norm "
                           f"{norm:.6g} (expected 1)")
     w, x, y, z = (v / norm for v in q)
-    return ColmapImage(image_id, (w, x, y, z), (t[0], t[1], t[2]), camera_id, name)
+    return ColmapImage(image_id, (w, x, y, z), (t[0], t[1], t[2]), camera_id, name, norm)
 
 
 class _Bytes:
@@ -343,10 +346,9 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
         else:
             frames.append(f)
     paths = {(f, c): images_dir / by_frame[f][c].name for f in frames for c in order}
-    absent = [p for p in paths.values() if not p.is_file()]
-    if absent:
-        raise ColmapError(f"{len(absent)} of {len(paths)} images named in {model.path} are missing from "
-                          f"{images_dir} (see --images), e.g. {absent[0]}")
+    if paths and not any(p.is_file() for p in paths.values()):   # a wrong folder, not a few lost files
+        raise ColmapError(f"none of the {len(paths)} images named in {model.path} is in {images_dir} (see "
+                          f"--images), e.g. {next(iter(paths.values()))}")
     images = {(f, c): image_source(p, lenses[c][1]) for (f, c), p in paths.items()}
     undistorted = {c: f"{camera_of[c].model} -> pinhole (same K), cv2.remap bilinear, black where the source has "
                       f"no pixel" for c in order if lenses[c][1] is not None}
@@ -359,8 +361,11 @@ def recording_from_model(model: ColmapModel, images_dir: Path, fps: float = 10.0
     if undistorted:
         notes["undistorted"] = undistorted
     camera_poses = [{c: by_frame[f][c].T_world_camera for c in order} for f in frames]
+    corrected = Corrections()
+    for im in sorted(model.images.values(), key=lambda im: im.image_id):
+        corrected.add_quaternion(im.norm, f"{model.path}: image {im.image_id} ({im.name}) quaternion")
     return Recording(rig, frames, [f / fps for f in frames], images, camera_poses=camera_poses,
-                     points=(model.xyz, model.rgb), dropped=dropped, notes=notes)
+                     points=(model.xyz, model.rgb), dropped=dropped, notes=notes, corrected=corrected)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,7 @@
-"""Image sources shared by the importers: a file decoded to uint8 RGB when the dataset is written, resampled to a
-pinhole when its lens has radial-tangential (Brown-Conrady) distortion."""
+"""Image sources shared by the importers: a file checked (present, whole, readable, of its camera's size) before
+anything is written and decoded to uint8 RGB when the dataset is written, resampled to a pinhole when its lens has
+radial-tangential (Brown-Conrady) distortion. A file that fails a check raises ``ImageDefect`` (its frame is
+dropped, see ``recording``)."""
 
 from __future__ import annotations
 
@@ -15,13 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .recording import ImageSource, RecordingError
+from .recording import MISSING_IMAGE, TRUNCATED, UNREADABLE_IMAGE, WRONG_SIZE, ImageDefect, ImageSource, RecordingError
 
-__all__ = ["Distortion", "undistortion_maps", "image_source", "image_defect", "frame_number", "TRUNCATED",
-           "FileImage"]
-
-TRUNCATED = "truncated image file"
-"""The drop reason of a JPEG without its end-of-image marker or a PNG without its IEND chunk."""
+__all__ = ["Distortion", "undistortion_maps", "image_source", "image_defect", "header_size", "frame_number",
+           "TRUNCATED", "FileImage"]
 
 _JPEG, _JPEG_END = b"\xff\xd8\xff", b"\xff\xd9"
 _PNG, _PNG_END = b"\x89PNG\r\n\x1a\n", b"\x00\x00\x00\x00IEND\xaeB`\x82"
@@ -93,6 +92,23 @@ def image_defect(path: Path) -> str | None:
     return TRUNCATED
 
 
+def header_size(path: Path) -> tuple[int, int]:
+    """(width, height) of the image at ``path`` from its header, without decoding the pixels.
+
+    Raises:
+        ImageDefect: the file is absent (``MISSING_IMAGE``) or its header is not an image's (``UNREADABLE_IMAGE``).
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise ImageDefect(MISSING_IMAGE, f"{path}: image file not found")
+    try:
+        with Image.open(path) as img:
+            return img.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise ImageDefect(UNREADABLE_IMAGE, f"{path}: not a readable image: {e}") from None
+
+
 @contextmanager
 def _decoder_messages() -> Iterator[list[str]]:
     """Catch what C decoders (libjpeg, libpng, OpenCV) print on the process's stderr (file descriptor 2) inside the
@@ -113,18 +129,39 @@ def _decoder_messages() -> Iterator[list[str]]:
 
 @dataclass(frozen=True)
 class FileImage:
-    """An ``ImageSource`` read from a file: calling it decodes the file as uint8 RGB (EXIF orientation ignored, as
-    nerfstudio and COLMAP do), undistorted to a pinhole when ``lens`` is given (bilinear, black where the source
-    has no pixel). ``defect()`` is checked for every image before any is written; a frame with one is dropped."""
+    """An ``ImageSource`` read from a file (a ``CheckedSource``): calling it decodes the file as uint8 RGB (EXIF
+    orientation ignored, as nerfstudio and COLMAP do), undistorted to a pinhole when ``lens`` is given (bilinear,
+    black where the source has no pixel). ``check`` runs for every image before any is written."""
 
     path: Path
     lens: Distortion | None = None
 
-    def defect(self) -> str | None:
-        """The drop reason of this image (``image_defect``), or None when it is whole."""
-        return image_defect(self.path)
+    def check(self, size: tuple[int, int]) -> None:
+        """Check the file from its header and last bytes only (no decode).
+
+        Args:
+            size: its camera's (width, height).
+
+        Raises:
+            ImageDefect: the file is absent, cut short (``image_defect``), has no image header, or is not ``size``.
+        """
+        found = header_size(self.path)
+        if image_defect(self.path) is not None:
+            raise ImageDefect(TRUNCATED, f"{self.path}: truncated image file (its end marker is missing)")
+        if found != size:
+            raise ImageDefect(WRONG_SIZE, f"{self.path}: image is {found[0]}x{found[1]} but its camera is "
+                                          f"{size[0]}x{size[1]}")
 
     def __call__(self) -> np.ndarray:
+        """The image, decoded (and undistorted when ``lens`` is given).
+
+        Returns:
+            ``[H, W, 3]`` uint8 RGB.
+
+        Raises:
+            ImageDefect: the file does not decode (the decoder's own message joins the line), or is not the lens's
+                size.
+        """
         import cv2
 
         level = cv2.utils.logging.getLogLevel()   # OpenCV's own warning repeats the path: the decoder's says why
@@ -136,12 +173,16 @@ class FileImage:
             cv2.utils.logging.setLogLevel(level)
         if img is None:
             why = f" ({said[-1]})" if said else ""
-            raise RecordingError(f"{self.path}: cannot decode the image (missing, corrupt or unsupported){why}")
+            raise ImageDefect(UNREADABLE_IMAGE, f"{self.path}: cannot decode the image (missing, corrupt or "
+                                                f"unsupported){why}")
         for line in said:   # a warning on an image that decoded (e.g. extraneous bytes): one line naming the file
             print(f"{self.path}: {line}", file=sys.stderr)
         rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
         if self.lens is None:
             return rgb
+        if rgb.shape[:2] != (self.lens.height, self.lens.width):   # the maps are the lens's size, whatever the input
+            raise ImageDefect(WRONG_SIZE, f"{self.path}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera is "
+                                          f"{self.lens.width}x{self.lens.height}")
         mx, my = undistortion_maps(self.lens)
         return cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 

@@ -12,7 +12,8 @@ keys of its own. This module rewrites those keys as nerfstudio's and hands the f
 - Lens: OpenCV (``k1, k2, p1, p2``; images undistorted to a pinhole when any is nonzero), or with ``is_fisheye``
   OpenCV fisheye (``k1..k4``). FTheta, latlong and equirectangular lenses are refused.
 - A top-level key holds for every frame unless the frame has its own (instant-ngp's rule; a frame's focal length
-  replaces both axes). ``w``, ``h`` absent: the image's size.
+  replaces both axes). ``w``, ``h`` absent: the image's size; a frame whose image is then absent or unreadable
+  has no lens and is dropped here (``recording.ImageDefect``), any other image defect when the dataset is written.
 - ``file_path`` without an extension is the first of ``EXTENSIONS`` that exists, as instant-ngp resolves it.
 - ``sharpness`` (per frame), ``sharpness_discard_threshold`` and ``n_frames`` are not applied: every frame is
   imported.
@@ -26,17 +27,17 @@ from pathlib import Path
 from typing import Any
 
 from .base import Importer
+from .images import frame_number, header_size
 from .nerfstudio import (
     DISTORTION,
     FISHEYE,
     NerfstudioOptions,
-    image_size,
     json_number,
     load_json,
     read_frames,
     recording_from_transforms,
 )
-from .recording import Recording, RecordingError
+from .recording import Corrections, Dropped, ImageDefect, Recording, RecordingError
 
 __all__ = ["InstantNgpImporter", "InstantNgpOptions", "as_nerfstudio", "EXTENSIONS"]
 
@@ -96,13 +97,15 @@ def _focal(entry: dict[str, Any], size: tuple[int, int], where: str) -> tuple[tu
 def _frame(file: Path, meta: dict[str, Any], frame: Any, i: int, max_fov: float | None
            ) -> tuple[Any, bool | None, str | None]:
     """One entry of ``frames`` in nerfstudio's keys, whether its lens is a fisheye, and its focal-length keys.
-    An entry without a readable image is passed on as it is, for ``read_frames`` to report."""
+    An entry without a file path is passed on as it is, for ``read_frames`` to report.
+
+    Raises:
+        ImageDefect: ``w``, ``h`` are not stated and the image to read them from is absent or unreadable.
+    """
     if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
         return frame, None, None
     rel = _image_path(file, frame["file_path"])
     where = f"{file} frames[{i}] ({rel})"
-    if not (file.parent / rel).is_file():
-        return {**frame, "file_path": rel}, None, None
     for key, kind in UNSUPPORTED.items():
         if key in frame or key in meta:
             raise RecordingError(f"{where}: instant-ngp's {kind} lens is not supported (OpenCV or OpenCV fisheye)")
@@ -111,7 +114,7 @@ def _frame(file: Path, meta: dict[str, Any], frame: Any, i: int, max_fov: float 
     if not fisheye and any(json_number(lens, k, where, 0.0) for k in ("k3", "k4")):
         raise RecordingError(f"{where}: k3, k4 belong to is_fisheye lenses; instant-ngp's OpenCV lens reads k1, "
                              "k2, p1, p2")
-    w, h = image_size(file.parent / rel)
+    w, h = header_size(file.parent / rel) if "w" not in lens or "h" not in lens else (0, 0)
     w, h = int(json_number(lens, "w", where, w)), int(json_number(lens, "h", where, h))
     focal = _focal(frame, (w, h), where) or _focal(meta, (w, h), where)
     if focal is None:
@@ -129,8 +132,9 @@ def _frame(file: Path, meta: dict[str, Any], frame: Any, i: int, max_fov: float 
 
 
 def as_nerfstudio(file: Path, meta: dict[str, Any], max_fov: float | None = None
-                  ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """An instant-ngp transforms file's content in nerfstudio's keys, and notes on what was read.
+                  ) -> tuple[dict[str, Any], dict[str, Any], list[Dropped]]:
+    """An instant-ngp transforms file's content in nerfstudio's keys, notes on what was read, and the frames left
+    out because their lens is unknown (no ``w``, ``h`` and no image to read them from).
 
     Args:
         file: the transforms file (image paths are relative to its folder; messages name it).
@@ -138,16 +142,27 @@ def as_nerfstudio(file: Path, meta: dict[str, Any], max_fov: float | None = None
         max_fov: the lens's field of view in degrees, or None for the camera model's default.
 
     Returns:
-        ``camera_model`` and ``frames`` with every lens key per frame (``nerfstudio.read_frames`` reads them), and
-        notes for the import report.
+        ``camera_model`` and ``frames`` with every lens key per frame (``nerfstudio.read_frames`` reads them),
+        notes for the import report, and the frames dropped (each with its ``ImageDefect``'s reason and line).
+
+    Raises:
+        RecordingError: an entry is not one ParkSim reads, or every frame is dropped.
     """
-    frames, kinds, sources = [], set(), set()
+    frames, kinds, sources, dropped = [], set(), set(), []
     for i, frame in enumerate(meta["frames"]):
-        out, fisheye, source = _frame(file, meta, frame, i, max_fov)
+        try:
+            out, fisheye, source = _frame(file, meta, frame, i, max_fov)
+        except ImageDefect as e:
+            where = f"{file} frames[{i}]"
+            dropped.append(Dropped(e.reason, frame=frame_number(frame["file_path"], where), detail=f"{where}: {e}"))
+            continue
         frames.append(out)
         if fisheye is not None and source is not None:
             kinds.add(fisheye)
             sources.add(source)
+    if not frames:
+        raise RecordingError(f"{file}: no frame is left to import; {len(dropped)} dropped (first: "
+                             f"{dropped[0].detail})")
     if len(kinds) > 1:
         raise RecordingError(f"{file}: is_fisheye differs between frames; ParkSim reads one lens type per file")
     fisheye = kinds == {True}
@@ -160,7 +175,7 @@ def as_nerfstudio(file: Path, meta: dict[str, Any], max_fov: float | None = None
     ignored = sorted({k for k in IGNORED if k in meta} |
                      {k for fr in meta["frames"] if isinstance(fr, dict) for k in IGNORED if k in fr})
     notes.update({k: v for k, v in (("unit_cube", cube), ("ignored", ignored)) if v})
-    return {"camera_model": FISHEYE if fisheye else "OPENCV", "frames": frames}, notes
+    return {"camera_model": FISHEYE if fisheye else "OPENCV", "frames": frames}, notes, dropped
 
 
 class InstantNgpImporter(Importer):
@@ -182,7 +197,9 @@ class InstantNgpImporter(Importer):
     def load(self, options: InstantNgpOptions) -> Recording:
         """Read and check transforms.json and its images (nothing is written)."""
         file, meta = load_json(options.transforms)
-        nerfstudio, notes = as_nerfstudio(file, meta, options.max_fov)
-        rec = recording_from_transforms(file, nerfstudio, read_frames(file, nerfstudio), options.fps, "instant-ngp")
+        nerfstudio, notes, dropped = as_nerfstudio(file, meta, options.max_fov)
+        corrected = Corrections()
+        images = read_frames(file, nerfstudio, corrected)
+        rec = recording_from_transforms(file, nerfstudio, images, options.fps, "instant-ngp", corrected, dropped)
         rec.notes.update(notes)
         return rec

@@ -33,13 +33,13 @@ import numpy as np
 
 from .base import CheckedOptions, Importer
 from .images import Distortion, frame_number, image_source
-from .recording import Dropped, Recording, RecordingError, check_pose
+from .recording import Corrections, Dropped, Recording, RecordingError, check_pose
 
 if TYPE_CHECKING:
     from ..camera import CameraModel
     from ..data import DatasetReader
 
-__all__ = ["NerfstudioImporter", "NerfstudioOptions", "Lens", "Image", "load_json", "json_number", "image_size",
+__all__ = ["NerfstudioImporter", "NerfstudioOptions", "Lens", "Image", "load_json", "json_number",
            "read_frames", "read_transforms", "recording_from_transforms", "export", "transforms_of",
            "OPENGL_FROM_OPENCV", "PIXEL_OFFSET", "FISHEYE", "DISTORTION"]
 
@@ -156,8 +156,9 @@ def _lens(meta: dict[str, Any], frame: dict[str, Any], model: str, where: str) -
                 None if fov is None else json_number({"max_fov_deg": fov}, "max_fov_deg", where))
 
 
-def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
-    """T_world_camera (OpenCV axes) from a 4x4 or 3x4 camera-to-world ``transform_matrix`` (OpenGL axes)."""
+def _pose(frame: dict[str, Any], where: str, corrected: Corrections | None) -> np.ndarray:
+    """T_world_camera (OpenCV axes) from a 4x4 or 3x4 camera-to-world ``transform_matrix`` (OpenGL axes), its
+    rotation projected to the nearest proper one (``check_pose``; counted in ``corrected``)."""
     try:
         M = np.array(frame["transform_matrix"], dtype=np.float64)
     except KeyError:
@@ -170,29 +171,18 @@ def _pose(frame: dict[str, Any], where: str) -> np.ndarray:
         raise RecordingError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {M.shape}")
     if not np.isfinite(M).all():
         raise RecordingError(f"{where}: transform_matrix has non-finite values")
-    check_pose(M, f"{where}: transform_matrix")
-    return M @ OPENGL_FROM_OPENCV
+    return check_pose(M, f"{where}: transform_matrix", corrected) @ OPENGL_FROM_OPENCV
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
-    from PIL import Image as PILImage
-    from PIL import UnidentifiedImageError
-
-    try:
-        with PILImage.open(path) as img:
-            return img.size
-    except (UnidentifiedImageError, OSError) as e:
-        raise RecordingError(f"{path}: not a readable image: {e}") from None
-
-
-def read_frames(file: Path, meta: dict[str, Any]) -> list[Image]:
-    """Every frame of ``meta`` (the content of ``file``), checked: its image exists at its stated size, its lens
-    is one ParkSim models, its pose is rigid.
+def read_frames(file: Path, meta: dict[str, Any], corrected: Corrections | None = None) -> list[Image]:
+    """Every frame of ``meta`` (the content of ``file``), checked: its lens is one ParkSim models, its pose is rigid
+    (a rotation within tolerance is projected to a proper one). Its image file is not opened: an absent, unreadable
+    or wrong-size image drops its frame when the dataset is written (``recording.write_recording``).
 
     Args:
         file: the transforms file (image paths are relative to its folder; messages name it).
         meta: its content in nerfstudio's keys (``load_json``).
+        corrected: counts the rotations projected (None: not counted).
 
     Returns:
         One ``Image`` per entry of ``meta["frames"]``, in order.
@@ -208,23 +198,19 @@ def read_frames(file: Path, meta: dict[str, Any]) -> list[Image]:
             raise RecordingError(f"{where}: no 'file_path'")
         image = file.parent / frame["file_path"]
         where = f"{where} ({frame['file_path']})"
-        if not image.is_file():
-            raise RecordingError(f"{where}: image file not found")
         lens = _lens(meta, frame, model, where)
-        if image_size(image) != (lens.width, lens.height):
-            w, h = image_size(image)
-            raise RecordingError(f"{where}: image is {w}x{h} but w, h say {lens.width}x{lens.height}")
         time = None if "time" not in frame else json_number(frame, "time", where)
-        images.append(Image(image, frame_number(image.name, where), time, lens, _pose(frame, where)))
+        images.append(Image(image, frame_number(image.name, where), time, lens, _pose(frame, where, corrected)))
     if len({im.time is None for im in images}) > 1:
         raise RecordingError(f"{file}: 'time' must be given for every frame or for none")
     return images
 
 
-def read_transforms(path: Path) -> tuple[Path, dict[str, Any], list[Image]]:
-    """Parse and check transforms.json (``path`` or the folder holding it): the file, its content, its frames."""
+def read_transforms(path: Path, corrected: Corrections | None = None) -> tuple[Path, dict[str, Any], list[Image]]:
+    """Parse and check transforms.json (``path`` or the folder holding it): the file, its content, its frames
+    (rotations projected counted in ``corrected``)."""
     file, meta = load_json(path)
-    return file, meta, read_frames(file, meta)
+    return file, meta, read_frames(file, meta, corrected)
 
 
 def _group(file: Path, images: list[Image]) -> tuple[list[str], str]:
@@ -286,7 +272,8 @@ def _timestamp(images: list[Image], fps: float) -> float:
 
 
 def recording_from_transforms(file: Path, meta: dict[str, Any], images: list[Image], fps: float,
-                              source: str = "nerfstudio") -> Recording:
+                              source: str = "nerfstudio", corrected: Corrections | None = None,
+                              dropped: list[Dropped] | None = None) -> Recording:
     """The frames of a transforms file as a Recording with per-image poses (``import_recording`` fits the rig).
 
     Args:
@@ -294,6 +281,8 @@ def recording_from_transforms(file: Path, meta: dict[str, Any], images: list[Ima
             (``read_frames``).
         fps: frames without ``time`` are at frame number / ``fps`` seconds.
         source: the dialect, named in the report's notes.
+        corrected: what ``read_frames`` corrected, for the report (None: nothing).
+        dropped: frames the dialect left out already (an image it could not read a lens from), not counted again.
 
     Returns:
         Cameras grouped by folder (else intrinsics), frames with an image from every camera (the others dropped),
@@ -320,11 +309,13 @@ def recording_from_transforms(file: Path, meta: dict[str, Any], images: list[Ima
             models[cam] = lens.camera()
         except ValueError as e:
             raise RecordingError(f"{file}: camera {cam!r}: {e}") from None
-    frames, dropped = [], []
+    known = {d.frame for d in dropped or []}
+    frames, dropped = [], list(dropped or [])
     for f in sorted({f for f, _ in table}):
         missing = [c for c in cameras if (f, c) not in table]
         if missing:
-            dropped.append(Dropped(f"no image from camera(s) {', '.join(missing)}", frame=f))
+            if f not in known:
+                dropped.append(Dropped(f"no image from camera(s) {', '.join(missing)}", frame=f))
         else:
             frames.append(f)
     if not frames:
@@ -348,7 +339,8 @@ def recording_from_transforms(file: Path, meta: dict[str, Any], images: list[Ima
                 for f in frames for c in cameras},
         camera_poses=[{c: table[(f, c)].T_world_camera for c in cameras} for f in frames],
         points=_points(file, meta), dropped=dropped, notes=notes,
-        split=_split(file, meta, {f: [table[(f, c)].path for c in cameras] for f in frames}))
+        split=_split(file, meta, {f: [table[(f, c)].path for c in cameras] for f in frames}),
+        corrected=corrected or Corrections())
 
 
 class NerfstudioImporter(Importer):
@@ -370,7 +362,9 @@ class NerfstudioImporter(Importer):
     def load(self, options: NerfstudioOptions) -> Recording:
         """Read and check transforms.json and its images (nothing is written)."""
         file, meta = load_json(options.transforms)
-        return recording_from_transforms(file, meta, read_frames(file, meta), options.fps)
+        corrected = Corrections()
+        images = read_frames(file, meta, corrected)
+        return recording_from_transforms(file, meta, images, options.fps, corrected=corrected)
 
 
 # --- export -------------------------------------------------------------------------------------------------------

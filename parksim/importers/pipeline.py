@@ -46,6 +46,13 @@ class ImportSettings(CheckedOptions):
     camera_height: float | None = field(default=None, metadata={
         "help": "without --rig: how far the ground lies below the cameras' centroid (for the BEV)", "metavar": "M",
         "low": 0})
+    downscale: int = field(default=1, metadata={
+        "help": "store the images N times smaller (cv2.INTER_AREA) with the rig's intrinsics scaled to match "
+                "(focal lengths / N, principal point by the pixel-centre rule); N must divide every camera's width "
+                "and height", "metavar": "N", "low": 1})
+    strict: bool = field(default=False, metadata={
+        "help": "refuse the recording at its first absent, cut short, unreadable or wrong-size image instead of "
+                "dropping that frame"})
     overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder"})
     quiet: bool = field(default=False, metadata={"help": "no progress bar"})
 
@@ -107,4 +114,4 @@ def import_recording(chosen: Importer | str, options: Any, settings: ImportSetti
     known = _known_rig(settings.rig)
     rec = _fit(chosen.load(options), settings, known)
     return write_recording(rec, settings.output, chosen.name, settings.test_every, settings.overwrite,
-                           not settings.quiet)
+                           not settings.quiet, strict=settings.strict, downscale=settings.downscale)

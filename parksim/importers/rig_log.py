@@ -31,7 +31,7 @@ import numpy as np
 
 from .base import CheckedOptions, Importer
 from .images import image_source
-from .recording import Dropped, ImageSource, Recording, RecordingError
+from .recording import UNREADABLE_IMAGE, Corrections, Dropped, ImageDefect, ImageSource, Recording, RecordingError
 from .rig_log_calib import FORMATS, QUATERNION_TOLERANCE, CalibFormat, rotations, unit_quaternions
 
 if TYPE_CHECKING:
@@ -254,8 +254,9 @@ def _rotation_columns(names: list[str], path: Path) -> list[str]:
     return [yaw]
 
 
-def read_poses(path: Path) -> PoseLog:
-    """Read and check a pose log (see ``POSE_COLUMNS``); errors name the file and row."""
+def read_poses(path: Path, corrected: Corrections | None = None) -> PoseLog:
+    """Read and check a pose log (see ``POSE_COLUMNS``); errors name the file and row; quaternions normalised are
+    counted in ``corrected``."""
     names, rows, labels = _table(path)
     tcol = _required(names, tuple(TIME_COLUMNS), path, "time")
     rotation = _rotation_columns(names, path)
@@ -282,7 +283,8 @@ def read_poses(path: Path) -> PoseLog:
     xyz = np.zeros((len(rows), 3))
     xyz[:, :len(position)] = values[:, :len(position)]
     if six_dof:
-        return PoseLog(path, times, xyz, unit_quaternions(values[:, 3:], labels), "6-DoF (x, y, z, qw, qx, qy, qz)")
+        return PoseLog(path, times, xyz, unit_quaternions(values[:, 3:], labels, corrected),
+                       "6-DoF (x, y, z, qw, qx, qy, qz)")
     half = 0.5 * values[:, -1] * YAW_COLUMNS[rotation[0]]
     q = np.stack([np.cos(half), np.zeros_like(half), np.zeros_like(half), np.sin(half)], 1)
     return PoseLog(path, times, xyz, q, f"2D odometry (x, y, {rotation[0]}{', z' if z else '; z = 0'})")
@@ -313,10 +315,10 @@ def file_time(path: Path, unit: str = "auto") -> tuple[float, str]:
     return _seconds(text, UNIT_TICKS[unit], str(path)), unit
 
 
-def _image_folder(camera: str, folder: Path, unit: str, size: tuple[int, int]) -> tuple[list[Shot], set[str]]:
-    """A camera's images in time order, each checked (from its header) to be ``size``; and the time units read."""
-    from PIL import Image, UnidentifiedImageError
-
+def _image_folder(camera: str, folder: Path, unit: str) -> tuple[list[Shot], set[str]]:
+    """A camera's images in time order, and the time units read. Their files are checked when the dataset is
+    written (``images.FileImage.check``): an absent (a dangling link), cut short, unreadable or wrong-size image
+    drops its frame."""
     if not folder.is_dir():
         raise RecordingError(f"--images {camera}={folder}: not a folder")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -324,14 +326,6 @@ def _image_folder(camera: str, folder: Path, unit: str, size: tuple[int, int]) -
         raise RecordingError(f"--images {camera}={folder}: no image ({', '.join(IMAGE_SUFFIXES)}) in the folder")
     shots, units = [], set()
     for p in files:
-        try:
-            with Image.open(p) as img:
-                found = img.size
-        except (UnidentifiedImageError, OSError) as e:
-            raise RecordingError(f"{p}: not a readable image: {e}") from None
-        if found != size:
-            raise RecordingError(f"{p}: image is {found[0]}x{found[1]} but camera {camera!r} is calibrated at "
-                                 f"{size[0]}x{size[1]}")
         t, u = file_time(p, unit)
         shots.append(Shot(t, image_source(p), str(p)))
         units.add(u)
@@ -359,7 +353,7 @@ class _Video:
         ok, img = self.capture.read()
         self.position += 1
         if not ok or self.position != index + 1:
-            raise RecordingError(f"{self.path}: cannot decode frame {index}")
+            raise ImageDefect(UNREADABLE_IMAGE, f"{self.path}: cannot decode frame {index}")
         if index == self.last:
             self.capture.release()
             self.capture = None
@@ -429,7 +423,7 @@ def _sources(options: RigLogOptions, rig: Rig) -> tuple[dict[str, list[Shot]], d
     for c in rig.names:
         size = (rig.cameras[c].model.width, rig.cameras[c].model.height)
         if c in folders:
-            shots[c], found = _image_folder(c, folders[c], options.time_unit, size)
+            shots[c], found = _image_folder(c, folders[c], options.time_unit)
             units |= found
             notes[c] = {"images": str(folders[c]), "count": len(shots[c])}
         else:
@@ -490,8 +484,10 @@ class RigLogImporter(Importer):
         docstring)."""
         from .rig_log_calib import load_calibration
 
-        rig, notes = load_calibration(options.calib, options.calib_format, options.extrinsics, options.max_fov)
-        log = read_poses(options.poses)
+        corrected = Corrections()
+        rig, notes = load_calibration(options.calib, options.calib_format, options.extrinsics, options.max_fov,
+                                      corrected)
+        log = read_poses(options.poses, corrected)
         shots, source_notes = _sources(options, rig)
         names = rig.names
         grouped, dropped = _group(shots, names, options.sync_tolerance)
@@ -527,4 +523,5 @@ class RigLogImporter(Importer):
                       "quaternion_tolerance": QUATERNION_TOLERANCE})
         return Recording(rig=rig, frames=frames, timestamps=[float(frame_times[i]) for i in keep],
                          images={(grouped[i][0], c): grouped[i][1][c].source for i in keep for c in names},
-                         poses=ego[keep], camera_poses=camera_poses, dropped=dropped, notes=notes)
+                         poses=ego[keep], camera_poses=camera_poses, dropped=dropped, notes=notes,
+                         corrected=corrected)

@@ -12,6 +12,8 @@ axes, vehicle x forward, y left, z up) come from an extrinsics file, JSON or YAM
 A calibration folder holds one file per camera named by the camera (``front.yaml``, ``rear.json``, ``left.txt``)
 and, when needed, ``extrinsics.json``/``.yaml``/``.yml``; a single file is one camera named by its stem, or a whole
 ParkSim rig (``rig.json``/``.yaml``). Cameras are ordered as the extrinsics file lists them, then by name.
+Rotations within ``parksim.geometry.ROTATION_TOLERANCE`` (a calibration printed with 6 decimals) are projected to
+the nearest proper rotation and quaternions normalised; ``Corrections`` counts both for the import report.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from .recording import RecordingError, check_pose
+from .recording import CALIBRATION_ROTATIONS, Corrections, RecordingError, check_pose
 
 if TYPE_CHECKING:
     from ..rig import BEVSpec, Rig, RigCamera
@@ -46,15 +48,18 @@ QUATERNION_TOLERANCE = 1e-3
 QUATERNION_KEYS = ("qw", "qx", "qy", "qz")
 
 
-def unit_quaternions(q: np.ndarray, where: list[str]) -> np.ndarray:
-    """``q [N, 4]`` (w, x, y, z) normalised; a norm more than ``QUATERNION_TOLERANCE`` from 1 is an error naming
-    ``where[i]``."""
+def unit_quaternions(q: np.ndarray, where: list[str], corrected: Corrections | None = None) -> np.ndarray:
+    """``q [N, 4]`` (w, x, y, z) normalised, each counted in ``corrected`` (``Corrections.add_quaternion``); a norm
+    more than ``QUATERNION_TOLERANCE`` from 1 is an error naming ``where[i]``."""
     norm = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(~(np.abs(norm - 1.0) <= QUATERNION_TOLERANCE))
     if len(bad):
         i = int(bad[0])
         raise RecordingError(f"{where[i]}: quaternion (qw, qx, qy, qz) = {q[i].tolist()} has norm {norm[i]:.6g}, "
                              f"more than {QUATERNION_TOLERANCE:g} from 1")
+    if corrected is not None:
+        for n, label in zip(norm, where):
+            corrected.add_quaternion(float(n), f"{label}: quaternion")
     return q / norm[:, None]
 
 
@@ -129,8 +134,9 @@ def _read_doc(path: Path) -> Any:
         raise RecordingError(f"{path}: cannot parse: {' '.join(str(e).split())}") from None
 
 
-def _extrinsic(entry: Any, where: str) -> np.ndarray:
-    """One camera's ``T_vehicle_camera``: a 4x4 (or 3x4) matrix, or x, y, z and a unit quaternion."""
+def _extrinsic(entry: Any, where: str, corrected: Corrections | None) -> np.ndarray:
+    """One camera's ``T_vehicle_camera``: a 4x4 (or 3x4) matrix, or x, y, z and a unit quaternion; corrections
+    counted in ``corrected``."""
     if not isinstance(entry, dict):
         raise RecordingError(f"{where}: expected a mapping with T_vehicle_camera, or x, y, z, qw, qx, qy, qz")
     try:
@@ -143,7 +149,7 @@ def _extrinsic(entry: Any, where: str) -> np.ndarray:
             if not np.isfinite(values).all():
                 raise RecordingError(f"{where}: x, y, z, qw, qx, qy, qz must be finite, got {values.tolist()}")
             T = np.eye(4)
-            T[:3, :3] = rotations(unit_quaternions(values[None, 3:], [where]))[0]
+            T[:3, :3] = rotations(unit_quaternions(values[None, 3:], [where], corrected))[0]
             T[:3, 3] = values[:3]
     except KeyError as e:
         raise RecordingError(f"{where}: no {e.args[0]!r} (give T_vehicle_camera, or x, y, z, qw, qx, qy, qz)") from None
@@ -151,12 +157,12 @@ def _extrinsic(entry: Any, where: str) -> np.ndarray:
         if isinstance(e, RecordingError):
             raise
         raise RecordingError(f"{where}: T_vehicle_camera must be a 4x4 matrix of numbers ({e})") from None
-    check_pose(T, f"{where}: T_vehicle_camera")
-    return T
+    return check_pose(T, f"{where}: T_vehicle_camera", corrected, CALIBRATION_ROTATIONS)
 
 
-def read_extrinsics(path: Path) -> tuple[dict[str, np.ndarray], BEVSpec | None]:
-    """Each camera's ``T_vehicle_camera`` (file order) and the optional BEV spec of an extrinsics file."""
+def read_extrinsics(path: Path, corrected: Corrections | None = None) -> tuple[dict[str, np.ndarray], BEVSpec | None]:
+    """Each camera's ``T_vehicle_camera`` (file order; rotations projected and quaternions normalised, counted in
+    ``corrected``) and the optional BEV spec of an extrinsics file."""
     from ..rig import BEVSpec, CalibrationError
 
     doc = _read_doc(path)
@@ -165,7 +171,7 @@ def read_extrinsics(path: Path) -> tuple[dict[str, np.ndarray], BEVSpec | None]:
     unknown = sorted(set(doc) - {"cameras", "bev"})
     if unknown:
         raise RecordingError(f"{path}: unknown keys {unknown}; an extrinsics file has 'cameras' and 'bev'")
-    T = {str(name): _extrinsic(entry, f"{path} camera {name!r}") for name, entry in doc["cameras"].items()}
+    T = {str(name): _extrinsic(entry, f"{path} camera {name!r}", corrected) for name, entry in doc["cameras"].items()}
     try:
         bev = None if doc.get("bev") is None else BEVSpec.from_dict(doc["bev"])
     except (CalibrationError, TypeError, AttributeError) as e:
@@ -211,8 +217,10 @@ def _calibration_files(calib: Path, extrinsics: Path | None) -> tuple[list[Path]
 
 
 def load_calibration(calib: Path, fmt: str | None = None, extrinsics: Path | None = None,
-                     max_fov_deg: float | None = None) -> tuple[Rig, dict[str, Any]]:
-    """The rig of ``--calib`` (file or folder) and notes for the import report (file, format per camera)."""
+                     max_fov_deg: float | None = None, corrected: Corrections | None = None
+                     ) -> tuple[Rig, dict[str, Any]]:
+    """The rig of ``--calib`` (file or folder) and notes for the import report (file, format per camera); rotations
+    projected and quaternions normalised are counted in ``corrected``."""
     from ..rig import Rig
 
     files, extrinsics = _calibration_files(calib, extrinsics)
@@ -223,8 +231,12 @@ def load_calibration(calib: Path, fmt: str | None = None, extrinsics: Path | Non
             raise RecordingError(f"{files[0] if calib.is_dir() else calib}: a ParkSim rig file holds every camera "
                                  "with its extrinsics; pass it alone as --calib FILE, without an extrinsics file")
         rig = Rig.load(calib)
+        if corrected is not None:
+            for name, cam in rig.cameras.items():
+                corrected.add(CALIBRATION_ROTATIONS, cam.rotation_correction, f"{calib} camera {name!r}: "
+                              "T_vehicle_camera")
         return rig, {"calibration": str(calib), "calibration_format": "parksim"}
-    T, bev = read_extrinsics(extrinsics) if extrinsics is not None else ({}, None)
+    T, bev = read_extrinsics(extrinsics, corrected) if extrinsics is not None else ({}, None)
     by_name = {p.stem: p for p in files}
     unknown = [n for n in T if n not in by_name]
     if unknown:
