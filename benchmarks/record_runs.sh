@@ -17,3 +17,9 @@ for suite in ipm ut-accuracy projection rasterize server scaling synth knobs env
   $BIN/parksim bench "$suite" --quiet
 done
 $BIN/parksim bench report
+
+# Issue [18] (2026-11-27, second session): the reliability figures re-measured after the hardening.
+for suite in hardening server-memory soak-server; do
+  $BIN/parksim bench "$suite" --quiet
+done
+$BIN/parksim bench report
