@@ -5,10 +5,10 @@ through the real CLI, against a real ``parksim serve`` with an API key, a real `
 from __future__ import annotations
 
 import importlib.util
-import math
 from urllib.parse import parse_qs, urlsplit
 
 import pytest
+from test_bench_serving import figures
 
 from parksim.bench.malformed import corpus
 from parksim.bench.record import Figure, Record, read_record
@@ -60,14 +60,6 @@ def record(tmp_path_factory: pytest.TempPathFactory) -> Record:
     (path,) = (results / "hardening").glob("*.json")
     found = read_record(path)
     assert found.plot is not None and (path.parent / found.plot).read_bytes()[:8] == PNG_MAGIC
-    return found
-
-
-def figures(record: Record) -> dict[str, Figure]:
-    found = {f.target: f for f in record.figures}
-    assert len(found) == len(record.figures)
-    for f in record.figures:
-        assert all(v is None or math.isfinite(v) for v in (f.value, f.cpu, f.reference, f.reference_cpu)), f
     return found
 
 
