@@ -73,7 +73,8 @@ class RigLogOptions(CheckedOptions):
 
     calib: Path = field(metadata={
         "help": "calibration file, or a folder with one file per camera named by the camera (front.yaml, "
-                "rear.json, left.txt...) and extrinsics.json/yaml when the format has none", "metavar": "FILE|DIR"})
+                "rear.json, left.txt...) and extrinsics.json/yaml when the format has none, or a SensorsCalibration "
+                "surround-view folder (intrinsic/, extrinsic/, avm.json)", "metavar": "FILE|DIR"})
     calib_format: CalibFormat | None = field(default=None, metadata={
         "help": "calibration format (default: from each file's content): "
                 + "; ".join(f"{k}: {v}" for k, v in FORMATS.items())})
@@ -471,7 +472,8 @@ class RigLogImporter(Importer):
     description = (
         "Read a rig log: --calib (OpenCV fisheye YAML, WoodScape JSON, OCamCalib calib_results.txt or JSON, or a "
         "ParkSim rig; a folder with one file per camera named by the camera, plus extrinsics.json/yaml for the formats "
-        "without extrinsics), --poses (CSV or JSON, T_world_vehicle against time; " + POSE_COLUMNS + "), and images: "
+        "without extrinsics; or a SensorsCalibration surround-view folder: intrinsic/, extrinsic/, avm.json), "
+        "--poses (CSV or JSON, T_world_vehicle against time; " + POSE_COLUMNS + "), and images: "
         "--images with one folder per camera (" + TIME_RULE + ") or --video per camera sampled at --fps (frame i at "
         "--video-start + i / the video's frame rate). A frame is the first camera's image with every other camera's "
         "nearest image within --sync-tolerance, at the mean of their times; its pose is interpolated between logged "

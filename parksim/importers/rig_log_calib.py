@@ -1,5 +1,6 @@
 """Rig-log calibration -> ``Rig``: OpenCV fisheye YAML, WoodScape JSON, OCamCalib (``calib_results.txt`` or the
-surround-view JSON) or a ParkSim rig file, each read by its loader in ``parksim.rig`` / ``parksim.camera``.
+surround-view JSON), a SensorsCalibration surround-view folder or a ParkSim rig file, each read by its loader in
+``parksim.rig`` / ``parksim.camera`` / ``parksim.calib.avm``.
 
 OpenCV YAML and OCamCalib files hold intrinsics only; their ``T_vehicle_camera`` (camera -> vehicle, OpenCV camera
 axes, vehicle x forward, y left, z up) come from an extrinsics file, JSON or YAML::
@@ -11,7 +12,9 @@ axes, vehicle x forward, y left, z up) come from an extrinsics file, JSON or YAM
 
 A calibration folder holds one file per camera named by the camera (``front.yaml``, ``rear.json``, ``left.txt``)
 and, when needed, ``extrinsics.json``/``.yaml``/``.yml``; a single file is one camera named by its stem, or a whole
-ParkSim rig (``rig.json``/``.yaml``). Cameras are ordered as the extrinsics file lists them, then by name.
+ParkSim rig (``rig.json``/``.yaml``); a folder with ``intrinsic/`` and ``extrinsic/`` subfolders is a whole
+SensorsCalibration surround-view calibration (``parksim.calib.avm.read_avm``). Cameras are ordered as the extrinsics
+file lists them, then by name.
 Rotations within ``parksim.geometry.ROTATION_TOLERANCE`` (a calibration printed with 6 decimals) are projected to
 the nearest proper rotation and quaternions normalised; ``Corrections`` counts both for the import report.
 """
@@ -36,9 +39,11 @@ FORMATS = {"opencv-yaml": "OpenCV fisheye YAML (camera_matrix, dist_coeffs, reso
            "woodscape": "WoodScape calibration JSON (radial_poly intrinsic and extrinsic)",
            "ocam-txt": "OCamCalib calib_results.txt",
            "ocam-json": "OCam surround-view JSON (cam_K, cam_dist)",
-           "parksim": "ParkSim rig file (rig.json/yaml: every camera's intrinsics and T_vehicle_camera)"}
+           "parksim": "ParkSim rig file (rig.json/yaml: every camera's intrinsics and T_vehicle_camera)",
+           "avm": "SensorsCalibration surround-view folder (intrinsic/ and extrinsic/ JSON per camera, avm.json: "
+                  "BEV camera and ground depths)"}
 """``--calib-format`` values and what each reads."""
-CalibFormat = Literal["opencv-yaml", "woodscape", "ocam-txt", "ocam-json", "parksim"]
+CalibFormat = Literal["opencv-yaml", "woodscape", "ocam-txt", "ocam-json", "parksim", "avm"]
 """The keys of ``FORMATS``, as a type."""
 OWN_EXTRINSICS = ("woodscape", "parksim")
 EXTRINSICS_NAMES = ("extrinsics.json", "extrinsics.yaml", "extrinsics.yml")
@@ -216,25 +221,38 @@ def _calibration_files(calib: Path, extrinsics: Path | None) -> tuple[list[Path]
     return files, extrinsics or (found[0] if found else None)
 
 
+def _count_rig_corrections(rig: Rig, calib: Path, corrected: Corrections | None, matrix: str) -> None:
+    """Count each camera's ``rotation_correction`` (a whole-rig reader's, of the file's ``matrix``) in
+    ``corrected``."""
+    if corrected is not None:
+        for name, cam in rig.cameras.items():
+            corrected.add(CALIBRATION_ROTATIONS, cam.rotation_correction, f"{calib} camera {name!r}: {matrix}")
+
+
 def load_calibration(calib: Path, fmt: str | None = None, extrinsics: Path | None = None,
                      max_fov_deg: float | None = None, corrected: Corrections | None = None
                      ) -> tuple[Rig, dict[str, Any]]:
     """The rig of ``--calib`` (file or folder) and notes for the import report (file, format per camera); rotations
     projected and quaternions normalised are counted in ``corrected``."""
+    from ..calib.avm import is_avm_folder, read_avm
     from ..rig import Rig
 
+    fov: dict[str, Any] = {} if max_fov_deg is None else {"max_fov_deg": max_fov_deg}
+    if fmt == "avm" or (fmt is None and is_avm_folder(calib)):
+        if extrinsics is not None:
+            raise RecordingError(f"--calib {calib}: a SensorsCalibration folder holds its own extrinsics; "
+                                 "give no extrinsics file")
+        rig = read_avm(calib, **fov)
+        _count_rig_corrections(rig, calib, corrected, "T_CG")
+        return rig, {"calibration": str(calib), "calibration_format": "avm"}
     files, extrinsics = _calibration_files(calib, extrinsics)
     formats = {p: fmt or detect_format(p) for p in files}
-    fov: dict[str, Any] = {} if max_fov_deg is None else {"max_fov_deg": max_fov_deg}
     if "parksim" in formats.values():
         if calib.is_dir() or extrinsics is not None:
             raise RecordingError(f"{files[0] if calib.is_dir() else calib}: a ParkSim rig file holds every camera "
                                  "with its extrinsics; pass it alone as --calib FILE, without an extrinsics file")
         rig = Rig.load(calib)
-        if corrected is not None:
-            for name, cam in rig.cameras.items():
-                corrected.add(CALIBRATION_ROTATIONS, cam.rotation_correction, f"{calib} camera {name!r}: "
-                              "T_vehicle_camera")
+        _count_rig_corrections(rig, calib, corrected, "T_vehicle_camera")
         return rig, {"calibration": str(calib), "calibration_format": "parksim"}
     T, bev = read_extrinsics(extrinsics, corrected) if extrinsics is not None else ({}, None)
     by_name = {p.stem: p for p in files}
