@@ -19,8 +19,8 @@ from .parser import Parser, UsageError
 __all__ = ["COMMANDS", "build_parser", "describe", "main"]
 
 # Order is the order shown in --help.
-COMMANDS = ["demo", "synth", "offpath", "import", "export", "reconstruct", "batch", "eval", "colmap", "detector",
-            "render", "ipm", "serve", "bench", "compact", "bundle"]
+COMMANDS = ["demo", "synth", "offpath", "import", "points", "export", "reconstruct", "batch", "eval", "colmap",
+            "detector", "render", "ipm", "serve", "bench", "compact", "bundle"]
 
 _MODULES = {"import": "imports"}
 """Commands whose module has another name (``import`` is a Python keyword)."""

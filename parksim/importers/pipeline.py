@@ -15,7 +15,7 @@ from __future__ import annotations
 import errno
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from .base import CheckedOptions, Importer, importer
 from .recording import Recording, write_recording
@@ -53,6 +53,9 @@ class ImportSettings(CheckedOptions):
     strict: bool = field(default=False, metadata={
         "help": "refuse the recording at its first absent, cut short, unreadable or wrong-size image instead of "
                 "dropping that frame"})
+    points: Literal["sfm"] | None = field(default=None, metadata={
+        "help": "sfm: triangulate points3d.ply from the imported poses once the dataset is written, as `parksim "
+                "points` does (SIFT, each camera's own lens, poses held fixed); replaces the recording's points"})
     overwrite: bool = field(default=False, metadata={"help": "replace an existing output folder"})
     quiet: bool = field(default=False, metadata={"help": "no progress bar"})
 
@@ -104,6 +107,7 @@ def import_recording(chosen: Importer | str, options: Any, settings: ImportSetti
     Raises:
         RecordingError: the input is unusable (one line naming the file or option at fault).
         FileExistsError: ``settings.output`` exists and ``settings.overwrite`` is off (checked before reading).
+        SfmError: ``settings.points`` is ``"sfm"`` and the images give too few points (the dataset stays, without).
     """
     chosen = importer(chosen) if isinstance(chosen, str) else chosen
     if not isinstance(options, chosen.Options):
@@ -113,5 +117,10 @@ def import_recording(chosen: Importer | str, options: Any, settings: ImportSetti
         raise FileExistsError(errno.EEXIST, "already exists; pass --overwrite to replace it", str(settings.output))
     known = _known_rig(settings.rig)
     rec = _fit(chosen.load(options), settings, known)
-    return write_recording(rec, settings.output, chosen.name, settings.test_every, settings.overwrite,
-                           not settings.quiet, strict=settings.strict, downscale=settings.downscale)
+    report = write_recording(rec, settings.output, chosen.name, settings.test_every, settings.overwrite,
+                             not settings.quiet, strict=settings.strict, downscale=settings.downscale)
+    if settings.points == "sfm":
+        from .points_sfm import add_to_import
+
+        report.update(add_to_import(settings.output, not settings.quiet))
+    return report
