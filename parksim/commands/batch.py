@@ -29,7 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="folder of scene bundles, e.g. scenes/")
     p.add_argument("--config", default="parkgaussian",
                    help="training config for every scene: a YAML path or a packaged preset name (tiny, demo, "
-                        "cpu_fast, cpu_slot_aware, gpu_fast, gpu_paper, parkgaussian)")
+                        "cpu_fast, cpu_slot_aware, cpu_real, gpu_fast, gpu_paper, parkgaussian)")
     p.add_argument("--address", help="join the Ray cluster at this address (e.g. auto, or HEAD_IP:6379); datasets "
                    "and SCENES must be on a file system every node sees")
     p.add_argument("--cpus-per-task", type=integer(1),

@@ -66,6 +66,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--projection", choices=["ut", "ewa"],
                    help="render with this projection instead of the one the scene was trained with (which is what "
                         "`parksim serve` renders with); one SCENE without --detector only")
+    p.add_argument("--image-scale", type=number(0, 1, open_low=True),
+                   help="score at this image scale, in (0, 1] (default: the one the scene was trained at, its "
+                        "config's data.image_scale); one SCENE without --detector only")
     p.add_argument("--lpips-net", choices=["alex", "vgg"], default="alex", help="LPIPS backbone")
     p.add_argument("--lpips-backbone", type=Path, help="torchvision AlexNet/VGG16 ImageNet state dict (.pth)")
     p.add_argument("--lpips-weights", type=Path, help="LPIPS v0.1 linear-head weights (alex.pth / vgg.pth)")
@@ -115,8 +118,8 @@ def run(args: argparse.Namespace) -> int:
     out = args.output or args.scenes[0][0] / "eval"
     check_output_folder(out)
     if args.detector or len(args.scenes) > 1:
-        if args.projection is not None:
-            raise ValueError("--projection applies to one SCENE without --detector")
+        if args.projection is not None or args.image_scale is not None:
+            raise ValueError("--projection and --image-scale apply to one SCENE without --detector")
         return _tables(args, out, device)
     from parksim.recon.evaluate import evaluate_bundle
 
@@ -134,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
     _announce(device)
     atomic_files(out, lambda tmp: result.update(evaluate_bundle(scene, args.data, tmp, args.backend, lpips,
                                                                 offpath=not args.no_offpath,
-                                                                projection=args.projection, device=device)))
+                                                                projection=args.projection, device=device,
+                                                                image_scale=args.image_scale)))
     print((out / "eval.md").read_text(), end="")
     plot = f", off-path plot: {out}/offpath.png" if "offpath" in result else ""
     print(f"report: {out}/eval.json, side-by-sides: {out}/renders/{plot}")

@@ -23,8 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("data", type=Path, help="dataset directory (parksim synth layout)")
     p.add_argument("-o", "--output", type=Path, required=True, help="scene bundle folder, e.g. scenes/NAME")
     p.add_argument("--config", help="training config: a YAML path or a packaged preset name "
-                   "(tiny, demo, cpu_fast, cpu_slot_aware, gpu_fast, gpu_paper, parkgaussian; default: the paper's, "
-                   "parkgaussian)")
+                   "(tiny, demo, cpu_fast, cpu_slot_aware, cpu_real, gpu_fast, gpu_paper, parkgaussian; default: the "
+                   "paper's, parkgaussian)")
     p.add_argument("--device", help=f"{DEVICE_HELP}; default: the config's run.device (cpu unless a preset says "
                    "otherwise: gpu_* say cuda); a resumed run may continue on another device")
     p.add_argument("--resume", action="store_true", help="continue the run in OUTPUT from its last checkpoint")

@@ -24,6 +24,7 @@ from .masks import scene_mask
 from .metrics import psnr, slot_region_mask, slot_segments, ssim
 from .plots import plot_offpath
 from .pose_refine import POSES_KEY, PoseCorrections, align_poses
+from .scaled import at_scale, scaled_rig
 
 if TYPE_CHECKING:
     from parksim.bundle import Bundle
@@ -153,12 +154,12 @@ def offpath_split(data_dir: Path) -> Path | None:
 
 
 def _offpath(bundle: Bundle, split: Path, response: Response, backend: str, align_steps: int | None,
-             on_path: EvalReport) -> dict[str, Any]:
+             on_path: EvalReport, image_scale: float) -> dict[str, Any]:
     """Scores on the off-path split grouped by kind and offset, beside the on-path reference (the recorded test
     views ``on_path``); per-view rows carry their pose's kind and signed offset."""
     from parksim.synth.offpath import group_frames, read_offpath
 
-    reader = DatasetReader(split)
+    reader = at_scale(DatasetReader(split), image_scale)
     info = read_offpath(split)
     descriptors = {d["frame"]: d for d in info["frames"]}
     report, _, _, alignment = _score_split(bundle, reader, response, backend, align_steps)
@@ -178,7 +179,8 @@ def _offpath(bundle: Bundle, split: Path, response: Response, backend: str, alig
 def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str = "auto",
                     lpips: Callable[[Tensor, Tensor, Tensor], float] | None = None,
                     align_steps: int | None = None, offpath: bool = True,
-                    projection: str | None = None, device: torch.device | None = None) -> dict[str, Any]:
+                    projection: str | None = None, device: torch.device | None = None,
+                    image_scale: float | None = None) -> dict[str, Any]:
     """Score a bundle on the dataset's test frames; writes ``eval.json``, ``eval.md`` and side-by-side PNGs.
 
     Views are rendered with the projection the bundle was trained with (``Bundle.projection``, as the server
@@ -189,6 +191,10 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     in the dataset (``parksim offpath``), its views are scored the same way and grouped by offset: eval.json's
     ``offpath``, a table in eval.md and ``offpath.png``.
 
+    Views are scored at the image scale the bundle was trained at (its meta's ``image_scale``, the run's
+    ``data.image_scale``: the dataset's images resized and the bundle's cameras scaled as in training), or at
+    ``image_scale`` in (0, 1]; eval.json's ``image_scale`` says which.
+
     Everything renders and scores on ``device`` (a ``parksim.device.resolve_device`` result; None: the CPU), where
     ``lpips`` must run too."""
     from parksim.bundle import load
@@ -196,8 +202,12 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
 
     from .response import CameraResponse
 
-    bundle, reader = load(scene_dir), DatasetReader(data_dir)
-    bundle = dataclasses.replace(bundle, scene=bundle.scene.to(device=device))
+    bundle = load(scene_dir)
+    scale = float(bundle.meta.get("image_scale", 1.0)) if image_scale is None else image_scale
+    if not 0 < scale <= 1:
+        raise ValueError(f"image scale must be in (0, 1], got {scale}")
+    reader = at_scale(DatasetReader(data_dir), scale)
+    bundle = dataclasses.replace(bundle, scene=bundle.scene.to(device=device), rig=scaled_rig(bundle.rig, scale))
     if projection is not None:
         bundle = dataclasses.replace(bundle, meta={**bundle.meta, "projection": projection})
     response = CameraResponse(reader.rig, 0.0, device)
@@ -218,14 +228,14 @@ def evaluate_bundle(scene_dir: Path, data_dir: Path, out_dir: Path, backend: str
     summary = summarize(report, reader.rig.names, frames)
     summary["overall"]["lpips"] = report.mean("lpips")
     result = {"scene": str(scene_dir), "dataset": str(data_dir), "test_frames": frames,
-              "projection": bundle.projection,
+              "projection": bundle.projection, "image_scale": scale,
               "lpips": "computed" if lpips is not None else "not computed (no LPIPS weights given)",
               "pose_alignment": alignment, **summary, "views": report.views}
     if aligned is not None:
         result["aligned_test_poses"] = aligned.refined_poses(frames)
     split = offpath_split(data_dir) if offpath else None
     if split is not None:
-        result["offpath"] = _offpath(bundle, split, response, backend, align_steps, report)
+        result["offpath"] = _offpath(bundle, split, response, backend, align_steps, report, scale)
         plot_offpath(result["offpath"], out_dir / "offpath.png")
     write_json(out_dir / "eval.json", result)
     (out_dir / "eval.md").write_text(_table(result, reader.rig.names))

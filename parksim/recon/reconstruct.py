@@ -16,6 +16,7 @@ from .checkpoint import checkpoint_path, load_checkpoint
 from .config import TrainConfig, dump_config, load_config
 from .plots import plot_metrics
 from .pose_refine import POSES_KEY
+from .scaled import full_size_rig
 from .trainer import METRICS_FILE, Trainer
 
 __all__ = ["reconstruct", "CONFIG_FILE"]
@@ -117,11 +118,12 @@ def reconstruct(data_dir: str | Path, out_dir: str | Path, config_path: str | Pa
     phase = "slot_aware" if trainer.slot_step else "photometric"
     rig, poses, ego = reader.rig, None, reader.poses.numpy() if reader.has_vehicle_poses else None
     if trainer.corrections is not None:
-        rig, poses = trainer.corrections.refined_rig(), trainer.corrections.refined_poses(reader.split["train"])
+        rig = full_size_rig(trainer.corrections.refined_rig(), reader.rig)   # trained at data.image_scale
+        poses = trainer.corrections.refined_poses(reader.split["train"])
         ego = ego if ego is None else np.array([f["T_world_vehicle"] for f in poses["frames"]])
     meta = {"dataset": str(Path(data_dir).resolve()), "phase": phase, "iterations": trainer.step,
             "gaussians": len(trainer.params), "train_seconds": round(trainer.elapsed, 1), "init": trainer.init_note,
-            "projection": config.run.projection,
+            "projection": config.run.projection, "image_scale": config.data.image_scale,
             "config": CONFIG_FILE, "metrics": METRICS_FILE, "camera_response": trainer.response.to_dict(),
             "recorded_path": recorded_path(ego) if ego is not None else None,
             "poses": "ego" if reader.has_vehicle_poses else "camera",
