@@ -22,12 +22,14 @@ from .frames import Frame, RequestError, npz_bytes_bound
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["LocalSim", "MIN_IMAGE_SIDE", "SUBSETS_KEPT"]
+__all__ = ["LocalSim", "MIN_IMAGE_SIDE", "SUBSETS_KEPT", "RESPONSES_KEPT"]
 
 MIN_IMAGE_SIDE = 4
 """Smallest rendered image side (px) a ``scale`` may produce."""
 SUBSETS_KEPT = 16
 """Visibility-cell subsets of the scene a ``LocalSim`` keeps (a planner moves through a few cells at a time)."""
+RESPONSES_KEPT = 8
+"""Camera responses at distinct render scales a ``LocalSim`` keeps (each holds a radius map per camera)."""
 
 
 class LocalSim:
@@ -59,6 +61,8 @@ class LocalSim:
             self.bundle = dataclasses.replace(self.bundle, scene=self.bundle.scene.to(device=self.device))
         self._subsets: OrderedDict[int, Any] = OrderedDict()
         self._subsets_lock = threading.Lock()
+        self._responses: OrderedDict[float, Any] = OrderedDict()
+        self._responses_lock = threading.Lock()
 
     @classmethod
     def from_dir(cls, directory: str | Path, device: str | torch.device = "auto") -> LocalSim:
@@ -134,6 +138,35 @@ class LocalSim:
             while len(self._subsets) > SUBSETS_KEPT:
                 self._subsets.popitem(last=False)
         return subset
+
+    def response(self, scale: float) -> Any:
+        """The bundle's learned camera response (``camera_response``) for views rendered at ``scale``.
+
+        As ``parksim eval`` applies it: per camera an RGB gain and radial vignetting, its radius maps built for the
+        camera scaled by ``scale``. ``render_batch`` applies it to every view before the uint8 conversion and the BEV.
+
+        Args:
+            scale: image size relative to the rig's cameras.
+
+        Returns:
+            A frozen ``parksim.recon.response.CameraResponse`` on the simulator's device (the same object for the
+            next ``RESPONSES_KEPT`` scales), or None when the bundle has none (a third-party PLY).
+        """
+        data = self.bundle.meta.get("camera_response")
+        if not data:
+            return None
+        with self._responses_lock:
+            if scale in self._responses:
+                self._responses.move_to_end(scale)
+                return self._responses[scale]
+        from .recon.response import CameraResponse
+
+        response = CameraResponse.frozen(self.bundle.rig, data, self.device, scale)
+        with self._responses_lock:
+            self._responses[scale] = response
+            while len(self._responses) > RESPONSES_KEPT:
+                self._responses.popitem(last=False)
+        return response
 
     def image_size(self, camera: str, scale: float) -> tuple[int, int]:
         """(width, height) of ``camera`` rendered at ``scale``.
@@ -224,8 +257,9 @@ class LocalSim:
             depth: also return depth maps.
 
         Returns:
-            The frame: uint8 ``[H, W, 3]`` images, float32 ``[H, W]`` depth (m) when asked, uint8 ``[Hb, Wb, 3]``
-            BEV when asked, and ``timings`` (s) of the views and the BEV.
+            The frame: uint8 ``[H, W, 3]`` images through the bundle's camera response (``response``), float32
+            ``[H, W]`` depth (m) when asked, uint8 ``[Hb, Wb, 3]`` BEV of those images when asked, and ``timings``
+            (s) of the views and the BEV.
 
         Raises:
             RequestError: as ``check``.
@@ -269,10 +303,13 @@ class LocalSim:
             for i, pose in enumerate(poses):
                 scene = self.scene_at(pose)
                 groups.setdefault(id(scene), (scene, []))[1].append(i)
+            response = self.response(scale)
             for scene, members in groups.values():
                 rendered = render_batch(scene, self.bundle.rig, [list(poses[i]) for i in members], cameras=needed,
                                         scale=scale, method=self.bundle.projection)
                 for i, res in zip(members, rendered):
+                    if response is not None:
+                        res.images = {n: response(image, n) for n, image in res.images.items()}
                     results[i] = res
             for frame, res in zip(frames, results):
                 frame.images = {n: to_uint8(res.images[n]) for n in names}

@@ -1,7 +1,8 @@
 """Training checkpoints: everything a resumed run needs to continue exactly where a killed one stopped.
 
 One file, ``checkpoints/last.pt``, replaced atomically; it holds the parameters, Adam moments,
-the strategy's and camera response's state, the RNG state, the iteration and the wall-clock and CPU time spent.
+the strategy's and camera response's state (and the per-image exposure corrections' when learned), the RNG state,
+the iteration and the wall-clock and CPU time spent.
 Its tensors are always CPU tensors, whatever device the run trains on, so a checkpoint written on a GPU resumes on
 the CPU and the other way round (the trainer moves them to its device).
 """

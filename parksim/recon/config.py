@@ -15,8 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from .slot_aware.config import SlotAwareConfig
 
-__all__ = ["TrainConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names", "resolve_config",
-           "load_config", "parse_config", "dump_config"]
+__all__ = ["TrainConfig", "DataConfig", "PoseRefineConfig", "ConfigError", "PRESETS_DIR", "preset_names",
+           "resolve_config", "load_config", "parse_config", "dump_config"]
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
 """The packaged training presets, one YAML file per name."""
@@ -43,6 +43,17 @@ class LearningRates(_Strict):
     scales: float = Field(5e-3, gt=0)
     quats: float = Field(1e-3, gt=0)
     response: float = Field(1e-3, ge=0, description="per-camera gain and vignetting (0 disables them)")
+    exposure: float = Field(0.0, ge=0, description="per-image (frame, camera) RGB gain and bias for auto-exposure "
+                            "and white balance, applied in training only (0: off; docs/training.md measures 3e-3)")
+
+
+class DataConfig(_Strict):
+    """How the dataset's images are seen in training (and by ``parksim eval`` of the bundle)."""
+
+    image_scale: float = Field(1.0, gt=0, le=1, description="train on the images resized by this factor "
+                               "(cv2 INTER_AREA) against the rig's cameras scaled to match (CameraModel.scaled): "
+                               "0.5 quarters the pixels of each step; the bundle keeps the full-size rig and "
+                               "`parksim eval` scores at this scale unless told otherwise")
 
 
 class InitConfig(_Strict):
@@ -145,6 +156,7 @@ class TrainConfig(_Strict):
 
     Attributes:
         run: seed, device, batch, renderer, logging and checkpoint cadence.
+        data: the training image scale.
         init: where the initial Gaussians come from.
         lr: Adam learning rates per attribute.
         photometric: phase 1 (L1 + D-SSIM on the fisheye images).
@@ -158,6 +170,7 @@ class TrainConfig(_Strict):
     """
 
     run: RunConfig = RunConfig()
+    data: DataConfig = DataConfig()
     init: InitConfig = InitConfig()
     lr: LearningRates = LearningRates()
     photometric: PhotometricConfig = PhotometricConfig()

@@ -3,6 +3,10 @@
 Surround-view cameras differ in exposure and darken towards the lens' edge; without this a single
 Gaussian scene must average four inconsistent colourings of the same floor. The mean log gain over
 cameras is pinned to zero so that the response cannot absorb the scene's overall brightness.
+
+A bundle saves it (``to_dict``) as its ``camera_response``: evaluation and the simulator (``parksim.sim.LocalSim``)
+apply it, fixed (``CameraResponse.frozen``), to every view they render. Per-image exposure corrections
+(``parksim.recon.exposure``) are training-only; this per-camera response is the reference a novel pose renders with.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from parksim.camera import pixel_grid
+from parksim.camera import CameraModel, pixel_grid
 from parksim.rig import Rig
 
 __all__ = ["CameraResponse"]
@@ -21,21 +25,49 @@ __all__ = ["CameraResponse"]
 class CameraResponse:
     """Learnable ``image * gain[camera] * (1 + v1 r^2 + v2 r^4)`` with r the radius relative to the lens circle.
 
-    Its parameters and radius maps live on ``device`` (the images' device: the CPU by default).
+    Its parameters and radius maps live on ``device`` (the images' device: the CPU by default); the maps are
+    built for the rig's cameras scaled by ``scale`` (the size the images are rendered at).
     """
 
-    def __init__(self, rig: Rig, lr: float, device: torch.device | None = None) -> None:
+    def __init__(self, rig: Rig, lr: float, device: torch.device | None = None, scale: float = 1.0) -> None:
+        """The identity response for ``rig``'s cameras.
+
+        Args:
+            rig: the rig (its camera models give the radius maps).
+            lr: Adam learning rate (0: frozen, no optimizer).
+            device: where the parameters and maps live (None: the CPU).
+            scale: the images' size relative to the rig's cameras.
+        """
         self.names = list(rig.names)
         n = len(self.names)
         self.log_gain = torch.zeros(n, 3, device=device, requires_grad=lr > 0)
         self.vignetting = torch.zeros(n, 2, device=device, requires_grad=lr > 0)
         self.optimizer = torch.optim.Adam([self.log_gain, self.vignetting], lr=lr) if lr > 0 else None
-        self._r2 = {name: self._radius2(rig, name).to(device) for name in self.names}
+        models = {name: rig.cameras[name].model for name in self.names}
+        self._r2 = {name: self._radius2(m if scale == 1.0 else m.scaled(scale)).to(device)
+                    for name, m in models.items()}
+
+    @classmethod
+    def frozen(cls, rig: Rig, data: dict[str, Any], device: torch.device | None = None,
+               scale: float = 1.0) -> CameraResponse:
+        """A saved response, fixed, for images of ``rig`` rendered at ``scale`` on ``device``.
+
+        Args:
+            rig: the rig the images are rendered with.
+            data: ``to_dict`` output (a bundle's ``camera_response``); cameras missing there keep the identity.
+            device: where the images are.
+            scale: their size relative to the rig's cameras.
+
+        Returns:
+            The response, with no optimizer.
+        """
+        response = cls(rig, 0.0, device, scale)
+        response.load_dict(data)
+        return response
 
     @staticmethod
-    def _radius2(rig: Rig, name: str) -> Tensor:
+    def _radius2(model: CameraModel) -> Tensor:
         """Squared normalised radius ``[H, W, 1]`` (1 on the lens' valid circle)."""
-        model = rig.cameras[name].model
         uv = pixel_grid(model.width, model.height)
         fx, fy = float(model.fx), float(model.fy)
         x, y = (uv[..., 0] - float(model.cx)) / fx, (uv[..., 1] - float(model.cy)) / fy

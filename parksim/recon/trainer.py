@@ -1,9 +1,10 @@
 """The photometric phase of ParkGaussian: fit Gaussians to the surround-view fisheye images.
 
 Each iteration renders ``batch_size`` random (train frame, camera) views with ``parksim.render``, applies
-the camera's learned response, and minimises (1 - lambda) L1 + lambda D-SSIM over the camera's scene
-mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the densification strategy
-(MCMC by default) runs after each step. When ``slot_aware.iterations`` > 0 and a detector is configured
+the camera's learned response (and, with ``lr.exposure`` > 0, the view's own exposure correction,
+``parksim.recon.exposure``, whose identity penalty joins the loss), and minimises (1 - lambda) L1 + lambda D-SSIM
+over the camera's scene mask plus the strategy's regulariser; Adam follows the 3DGS schedule and the densification
+strategy (MCMC by default) runs after each step. When ``slot_aware.iterations`` > 0 and a detector is configured
 (``slot_aware.detector``, or one passed in; the ``direct_ipm`` variant needs none), the slot-aware phase follows:
 each iteration renders the four cameras of a random train frame and minimises ``parksim.recon.slot_aware``'s
 L_rgb + L_align + L_ipm + L_cam. Both phases' iterations are in the learning-rate schedule (``schedule_iterations``).
@@ -39,6 +40,7 @@ from .compile_notice import compile_notice
 from .config import TrainConfig, parse_config
 from .detectors import Detector
 from .evaluate import evaluate_views
+from .exposure import ImageExposure
 from .heap import keep_freed_memory
 from .init import initial_scene
 from .losses import photometric_loss, sum_terms
@@ -48,6 +50,7 @@ from .metrics_log import METRICS_FILE, append_record, cut_back
 from .params import GaussianParams
 from .pose_refine import PoseCorrections, align_poses, refinement_enabled
 from .response import CameraResponse
+from .scaled import at_scale
 from .schedule import exp_decay, sh_degree_at
 from .slot_aware import SlotAwareStep, SlotAwareTerms, SlotFrame, frame_has_slots, spec_of
 from .strategy import StepInfo, ViewInfo, make_strategy
@@ -105,6 +108,8 @@ class Trainer:
 
         Args:
             reader: the dataset (rig, poses, images, split); training views are every (train frame, camera).
+                With ``config.data.image_scale`` < 1 the run sees it through ``parksim.recon.scaled.at_scale``
+                (``self.reader``): cameras scaled, images resized once as they are decoded.
             config: the validated run config (``parksim.recon.config.load_config``).
             out_dir: the run folder; checkpoints go to ``out_dir/checkpoints``, metrics to ``out_dir/metrics.jsonl``.
             log: one-line progress messages (``print`` by default).
@@ -115,6 +120,7 @@ class Trainer:
             DeviceError: ``config.run.device`` names a GPU this machine lacks (before anything is set up).
         """
         self.device = resolve_device(config.run.device)
+        reader = at_scale(reader, config.data.image_scale)
         self.reader, self.cfg, self.out, self.log = reader, config, Path(out_dir), log
         keep_freed_memory()   # every step reuses its large buffers' pages (recon/heap.py)
         self.rig = reader.rig
@@ -131,6 +137,7 @@ class Trainer:
         self._extrinsics = {c: self.rig.cameras[c].T_vehicle_camera.to(self.device) for c in self.rig.names}
         self.extent = scene_extent(reader)
         self.response = CameraResponse(self.rig, config.lr.response, self.device)
+        self.exposure = ImageExposure(self.views, config.lr.exposure, self.device) if config.lr.exposure > 0 else None
         self.strategy = make_strategy(config.densify, self.extent)
         self.params: GaussianParams | None = None
         self.step, self.elapsed, self.cpu, self.init_note = 0, 0.0, 0.0, ""
@@ -215,7 +222,7 @@ class Trainer:
             ValueError: phase 1 settings differ from this config's, or the run stopped before the end of phase 1.
         """
         saved = parse_config(state["config"], f"{source} checkpoint config")
-        differ = [k for k in ("init", "lr", "photometric", "densify", "pose_opt")
+        differ = [k for k in ("data", "init", "lr", "photometric", "densify", "pose_opt")
                   if getattr(saved, k) != getattr(self.cfg, k)]
         if differ:
             raise ValueError(f"{source}: its photometric phase was trained with other {', '.join(differ)} settings "
@@ -240,6 +247,8 @@ class Trainer:
         self.params = GaussianParams(state["params"], self._lrs(), self.device)
         self.params.optimizer.load_state_dict(state["optimizer"])   # moves Adam's moments to the parameters' device
         self.response.load_state_dict(state["response"])
+        if self.exposure is not None:
+            self.exposure.load_state_dict(state["exposure"])
         self.strategy.load_state_dict(tensors_to(state["strategy"], self.device))
         self.generator.set_state(state["rng"])
         if self.device_generator is not self.generator:
@@ -260,8 +269,9 @@ class Trainer:
 
         Returns:
             Iteration, timings, parameters (cloned), optimizer, response, strategy and RNG states (off the CPU also
-            the device generator's, ``rng_device``, and its device type), the config as JSON values and the pose
-            corrections when refining; tensors on this trainer's device (``save_checkpoint`` moves them to the CPU).
+            the device generator's, ``rng_device``, and its device type), the config as JSON values, the per-image
+            exposure corrections when learned and the pose corrections when refining; tensors on this trainer's
+            device (``save_checkpoint`` moves them to the CPU).
         """
         assert self.params is not None
         device_rng = ({} if self.device_generator is self.generator else
@@ -271,6 +281,7 @@ class Trainer:
                 "optimizer": self.params.optimizer.state_dict(), "response": self.response.state_dict(),
                 "strategy": self.strategy.state_dict(), "rng": self.generator.get_state(), **device_rng,
                 "config": self.cfg.model_dump(mode="json"),
+                **({"exposure": self.exposure.state_dict()} if self.exposure is not None else {}),
                 **({"pose_opt": self.corrections.state_dict()} if self.corrections is not None else {})}
 
     def decode_inputs(self) -> None:
@@ -321,7 +332,8 @@ class Trainer:
             pose = self._view_pose(camera, frame)
             image = render(scene, self.rig, pose, cameras=[camera], backend=self.cfg.run.backend,
                            method=self.cfg.run.projection).images[camera]
-            batch.preds.append(self.response(image, camera))
+            pred = self.response(image, camera)
+            batch.preds.append(pred if self.exposure is None else self.exposure(pred, frame, camera))
             batch.gts.append(self._image(frame, camera))
             batch.masks.append(self.masks[camera])
             batch.infos.append(self._view_info(pose.detach(), camera))
@@ -379,7 +391,7 @@ class Trainer:
             batch = self._render_batch(sh_degree)
             rgb = sum_terms(photometric_loss(p.permute(2, 0, 1)[None], g.permute(2, 0, 1)[None], m, ph.ssim_lambda)
                             for p, g, m in zip(batch.preds, batch.gts, batch.masks)) / len(batch.preds)
-            objective = rgb
+            objective = rgb if self.exposure is None else rgb + self.exposure.penalty()
         else:
             batch, terms = self._slot_batch(sh_degree)
             rgb, objective, slot = terms.rgb, terms.total, terms.record()
@@ -390,6 +402,8 @@ class Trainer:
         self.params.optimizer.step()
         self.params.optimizer.zero_grad(set_to_none=True)
         self.response.step()
+        if self.exposure is not None:
+            self.exposure.step()
         if self.corrections is not None:
             self.corrections.step(self.step)
         self.step += 1
