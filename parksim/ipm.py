@@ -183,8 +183,13 @@ class IPM:
         return _from_nchw(out.unflatten(2, (self.spec.height, self.spec.width)), batched, squeeze_c)
 
     def _taps_like(self, name: str, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Camera ``name``'s taps (rows, grid, weights) on ``x``'s device and dtype: the CPU ones converted on each
-        call as before, a GPU's copied there once (a render on the GPU then copies nothing per call)."""
+        """Camera ``name``'s taps on ``x``'s device and dtype, copied to a GPU once.
+
+        The CPU ones are converted on each call as before; a GPU's are kept, so a render there copies nothing.
+
+        Returns:
+            ``(rows, grid, weights)`` as ``_taps`` holds them, on ``x``'s device and in its dtype.
+        """
         rows, grid, weight = self._taps[name]
         if x.device.type == "cpu":
             return rows, grid.to(x), weight.to(x)

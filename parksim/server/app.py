@@ -131,8 +131,13 @@ def _install_errors(app: FastAPI) -> None:
 
 
 def _utf16_or_32(body: bytes) -> bool:
-    """Whether ``body`` is UTF-16/32 text, which Python's JSON parser would otherwise detect and accept: UTF-8 JSON
-    never holds a raw NUL byte (JSON escapes it), and UTF-16/32 text of ASCII JSON is full of them."""
+    """Whether ``body`` is UTF-16/32 text, which Python's JSON parser would otherwise detect and accept.
+
+    UTF-8 JSON never holds a raw NUL byte (JSON escapes it), and UTF-16/32 text of ASCII JSON is full of them.
+
+    Returns:
+        True for a body with a NUL byte or a UTF-16 byte-order mark.
+    """
     return b"\x00" in body or body.startswith((b"\xff\xfe", b"\xfe\xff"))
 
 
