@@ -122,7 +122,7 @@ def test_eval_projection_override_is_recorded_and_changes_the_render(bundle, tmp
     capsys.readouterr()
     assert main(["eval", str(bundle), str(bundle), str(data), "-o", str(tmp_path / "both"), "--projection", "ut"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--projection applies to one SCENE" in err
+    assert err.count("\n") == 1 and "--projection and --image-scale apply to one SCENE" in err
 
 
 def _umask() -> int:
