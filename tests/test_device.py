@@ -174,7 +174,9 @@ def test_replica_gpus_is_parsed_and_reserved():
     assert args.replica_gpus == 0.25 and args.device == "auto"
     actor = Scaling(2, None, 1, args.replica_gpus).options(Settings())["ray_actor_options"]
     assert actor["num_gpus"] == 0.25 and actor["num_cpus"] == 1
-    assert Scaling().options(Settings())["ray_actor_options"]["num_gpus"] == 0
+    assert "CUDA_VISIBLE_DEVICES" not in actor["runtime_env"]["env_vars"]
+    cpu_only = Scaling().options(Settings())["ray_actor_options"]
+    assert cpu_only["num_gpus"] == 0 and cpu_only["runtime_env"]["env_vars"]["CUDA_VISIBLE_DEVICES"] == ""
 
 
 @pytest.mark.parametrize("argv, message", [

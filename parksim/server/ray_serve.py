@@ -76,12 +76,17 @@ class Scaling:
     gpus: float = 0.0
 
     def options(self, settings: Settings) -> dict[str, Any]:
-        """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs, GPUs and threads per replica."""
+        """``Deployment.options`` for this scaling: replicas or autoscaling, CPUs, GPUs and threads per replica.
+
+        A replica that reserves no GPU is shown none (``CUDA_VISIBLE_DEVICES`` empty): Ray leaves every GPU visible
+        to such a worker, and ``--device auto`` would then render on a GPU it never reserved.
+        """
         threads = str(self.cpus)
+        env = {"OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads}
+        if self.gpus == 0:
+            env["CUDA_VISIBLE_DEVICES"] = ""
         out: dict[str, Any] = {
-            "ray_actor_options": {"num_cpus": self.cpus, "num_gpus": self.gpus,
-                                  "runtime_env": {"env_vars": {"OMP_NUM_THREADS": threads,
-                                                               "NUMBA_NUM_THREADS": threads}}},
+            "ray_actor_options": {"num_cpus": self.cpus, "num_gpus": self.gpus, "runtime_env": {"env_vars": env}},
             "max_ongoing_requests": settings.workers + settings.queue_size + HEADROOM,
             "max_constructor_retry_count": 1}
         if self.autoscale is None:
