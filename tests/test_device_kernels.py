@@ -345,3 +345,14 @@ def test_gpu_memory_bound_and_refusal_through_the_server():
     assert r.status_code == 413 and f"{card} has 24.0 GiB" in r.json()["detail"]
     r = client.get("/render/80")
     assert r.status_code == 503 and r.headers["retry-after"] == "1" and "20.0 GiB is free now" in r.json()["detail"]
+
+
+def test_an_empty_scene_renders_background_through_the_device_kernels():
+    from test_render_api import ground_scene, tiny_rig
+
+    from parksim.render import render
+
+    empty = ground_scene(4).subset(torch.zeros(0, dtype=torch.long))
+    out = render(empty, tiny_rig(), (0.0, 0.0, 0.0), projector="device", bev=True, bg=(0.0, 0.0, 0.0))
+    for name in ("front", "rear"):
+        assert not out.images[name].any() and not out.alpha[name].any() and not out.depth[name].any()

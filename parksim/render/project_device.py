@@ -102,6 +102,8 @@ def _static(cameras: Sequence[CameraModel], cfgs: Sequence[FusedUTConfig], dtype
 
 def _launch(name: str, items: int, device: torch.device, *args: Any) -> None:
     """Run kernel ``name`` over ``items`` work items: numba-cuda on a CUDA device, else its CPU twin."""
+    if items == 0:   # an empty scene: nothing to launch (a CUDA grid of 0 blocks is an error)
+        return
     if device.type == "cuda":
         from . import _cuda_kernels as kernels
         from ._numba_cuda import cuda
