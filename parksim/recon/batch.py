@@ -283,7 +283,7 @@ def run_batch(scenes: Sequence[Scene], config: str, cpus_per_task: int | None = 
     """Train every scene (``plan_scenes``) whose bundle is not yet written as a Ray task (Ray must be up, see
     ``ray_session``); returns one outcome per scene, in order. A failed scene does not stop the others. ``device``
     overrides the config's ``run.device`` in every task (a run started on another device resumes on this one);
-    ``gpus_per_task`` is each task's Ray ``num_gpus``."""
+    ``gpus_per_task`` is each task's Ray ``num_gpus`` (with 0 the task is shown no GPU at all)."""
     train_config = load_config(config)
     if device is not None:
         train_config = train_config.on_device(device)
@@ -299,9 +299,11 @@ def run_batch(scenes: Sequence[Scene], config: str, cpus_per_task: int | None = 
            f"{cpus} CPU(s){gpus} each")
     events = Queue(actor_options={"num_cpus": 0})
     relay = _Relay(events, report, retries, progress_every)
-    threads = {"OMP_NUM_THREADS": str(cpus), "NUMBA_NUM_THREADS": str(cpus)}   # torch's and numba's pools
+    env = {"OMP_NUM_THREADS": str(cpus), "NUMBA_NUM_THREADS": str(cpus)}   # torch's and numba's pools
+    if not gpus_per_task:   # Ray leaves every GPU visible to a task that reserved none: auto would take one
+        env["CUDA_VISIBLE_DEVICES"] = ""
     options = {"num_cpus": cpus, "num_gpus": gpus_per_task, "max_retries": retries, "retry_exceptions": True,
-               "runtime_env": {"env_vars": threads}}
+               "runtime_env": {"env_vars": env}}
     pending = {_train.options(**options, name=f"reconstruct {s.name}").remote(s, _worker_config(config), events,
                                                                               device): s
                for s in todo}
