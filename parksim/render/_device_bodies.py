@@ -20,7 +20,7 @@ import numba
 import numpy as np
 
 from . import _project_kernels as pk
-from ._sh_kernels import TINY_DISTANCE, _basis_vjp, sh_basis
+from ._sh_kernels import TINY_DISTANCE, _basis_vjp, _view, sh_basis
 
 __all__ = ["view_forward", "gaussian_backward", "views_forward_cpu", "views_backward_cpu", "N_FIFTH", "N_BASIS",
            "N_POSE_GRAD"]
@@ -58,8 +58,7 @@ def _shape(quats: np.ndarray, log_scales: np.ndarray, g: int, q: np.ndarray, s: 
 @numba.njit(inline="always", cache=True)
 def _ray(means: np.ndarray, g: int, centres: np.ndarray, v: int) -> tuple[float, float, float, float]:
     """Unit direction from view ``v``'s centre to Gaussian ``g`` and the (clamped) distance: ``(x, y, z, n)``."""
-    dx, dy, dz = means[g, 0] - centres[v, 0], means[g, 1] - centres[v, 1], means[g, 2] - centres[v, 2]
-    n = max(math.sqrt(dx * dx + dy * dy + dz * dz), TINY_DISTANCE)   # at the camera: any direction
+    dx, dy, dz, n = _view(means, g, centres[v])   # the CPU colour kernels' offset and clamped length
     return dx / n, dy / n, dz / n, n
 
 
