@@ -13,7 +13,7 @@ import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import gymnasium as gym
 import numpy as np
@@ -21,7 +21,7 @@ import numpy as np
 from ..env import ParkingEnv, free_slots, slot_pose, to_action
 from ..vehicle import Obstacles, VehicleParams, footprint, wrap_angle
 
-__all__ = ["GeometricParker", "dubins_paths", "run_episode"]
+__all__ = ["GeometricParker", "Parker", "dubins_paths", "run_episode"]
 
 _TWO_PI = 2 * math.pi
 
@@ -284,7 +284,21 @@ class GeometricParker:
         return to_action(2.0 * (v_ref - v), steer, self.vehicle)
 
 
-def run_episode(env: gym.Env, seed: int, parker: GeometricParker | None = None,
+class Parker(Protocol):
+    """What ``run_episode`` drives with: ``GeometricParker``, ``HybridAStarParker`` or a planner like them."""
+
+    def choose_slot(self, pose: tuple[float, float, float], world_map: dict[str, Any]
+                    ) -> tuple[int, np.ndarray] | None:
+        """``(slot id, path)`` to drive from ``pose``, or None when no free slot can be reached."""
+
+    def follow(self, path: np.ndarray) -> None:
+        """Start tracking ``path``, as ``choose_slot`` gave it."""
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The normalised ``[2]`` action for a privileged observation."""
+
+
+def run_episode(env: gym.Env, seed: int, parker: Parker | None = None,
                 on_step: Callable[[ParkingEnv], None] | None = None) -> dict[str, Any]:
     """Reset with ``seed``, pick the free slot with the best path, drive into it; returns the final info + steps.
 

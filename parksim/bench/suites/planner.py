@@ -4,6 +4,8 @@ Planners (``--planners``):
 
 - ``geometric``: the privileged baseline (``parksim.planners.run_episode``): world pose and map, picks the free slot
   with the shortest collision-free forward path and drives it in closed loop; renders nothing.
+- ``hybrid``: the same privileged episode with ``HybridAStarParker``: Hybrid A* over Reeds-Shepp curves (forward and
+  reverse, head-in or reversed in), tracked with its cusps; renders nothing.
 - ``perception``: no world pose (``parksim.planners.perception``): a DMPR-style detector on the rendered BEV every
   ``--every`` steps, dead reckoning, the geometric planner's path and controller. It is told the slot the geometric
   planner chose at the same start (in the ego frame, as the non-privileged observation gives it); run alone, it
@@ -33,7 +35,8 @@ from ..suite import Context, Outcome, Suite
 __all__ = ["PlannerSuite", "PlannerOptions", "PLANNERS"]
 
 PLANNERS = {"geometric": "privileged geometric planner (world pose + map)",
-            "perception": "perception planner (BEV detector + dead reckoning)"}
+            "perception": "perception planner (BEV detector + dead reckoning)",
+            "hybrid": "privileged Hybrid A* planner (world pose + map, reverses)"}
 """The planners this suite drives, with how figures name them."""
 
 
@@ -41,9 +44,9 @@ PLANNERS = {"geometric": "privileged geometric planner (world pose + map)",
 class PlannerOptions:
     """Options of ``parksim bench planner``."""
 
-    planners: list[str] = field(default_factory=lambda: list(PLANNERS), metadata={
+    planners: list[str] = field(default_factory=lambda: ["geometric", "perception"], metadata={
         "help": "planners to run on the same starts: geometric (privileged), perception (the geometric one is its "
-                "reference)"})
+                "reference), hybrid (privileged Hybrid A*, opt-in)"})
     episodes: int = field(default=30, metadata={"help": "episodes (seeds --seed .. --seed + episodes - 1)", "low": 1,
                                                 "quick": 2})
     bundle: Path | None = field(default=None, metadata={
@@ -136,10 +139,11 @@ class PlannerSuite(Suite):
     help = "parked/total of the geometric and perception planners from the same starts"
     description = ("Drive ParkingEnv from --episodes seeded random starts with each of --planners: the privileged "
                    "geometric planner, and the perception planner (BEV detector trained here on the bundle's "
-                   "rendered BEVs, dead reckoning), told the slot the geometric planner chose. Figures: the share "
-                   "of episodes parked per planner (the perception planner's reference: the geometric one on the "
-                   "same starts), and the median time of an episode (wall and process CPU). Data: every episode's "
-                   "outcome, steps, final centre and heading errors, and the detector's training cost.")
+                   "rendered BEVs, dead reckoning), told the slot the geometric planner chose; with --planners "
+                   "hybrid also the privileged Hybrid A* planner. Figures: the share of episodes parked per planner "
+                   "(the reference of the others: the geometric one on the same starts), and the median time of an "
+                   "episode (wall and process CPU). Data: every episode's outcome, steps, final centre and heading "
+                   "errors, and the detector's training cost.")
     Options = PlannerOptions
 
     def run(self, options: PlannerOptions, context: Context) -> Outcome:
@@ -147,7 +151,7 @@ class PlannerSuite(Suite):
         import gymnasium as gym
 
         from ...env import MAX_EPISODE_STEPS, ParkingEnv
-        from ...planners import run_episode
+        from ...planners import HybridAStarParker, run_episode
         from ...planners.perception import PerceptionParker, run_perception_episode
         from ...sim import LocalSim
         from ..scenes import surface_bundle
@@ -163,9 +167,9 @@ class PlannerSuite(Suite):
             key = hashlib.sha256(str(bundle.resolve()).encode()).hexdigest()[:8]
             folder = context.work / "planner" / f"{scene}_{key}"
         data: dict[str, Any] = {"bundle": str(bundle)}
-        geometric = perception = None
-        if "geometric" in options.planners:
-            geometric = gym.wrappers.TimeLimit(ParkingEnv(bundle=bundle, cameras=[], privileged=True),
+        privileged = perception = None
+        if {"geometric", "hybrid"} & set(options.planners):   # one privileged env drives both, episode by episode
+            privileged = gym.wrappers.TimeLimit(ParkingEnv(bundle=bundle, cameras=[], privileged=True),
                                                MAX_EPISODE_STEPS)
         if "perception" in options.planners:
             detector, data["detector"] = _detector(bundle, folder, options, context.quiet)
@@ -179,10 +183,13 @@ class PlannerSuite(Suite):
         with progress(options.episodes, "bench planner", context.quiet) as bar:
             for seed in seeds:
                 slot = None
-                if geometric is not None:
-                    r, wall, cpu = _timed(run_episode, geometric, seed)
+                if "geometric" in runs:
+                    r, wall, cpu = _timed(run_episode, privileged, seed)
                     runs["geometric"].append(_episode(r, wall, cpu))
                     slot = r.get("slot")
+                if "hybrid" in runs:
+                    r, wall, cpu = _timed(run_episode, privileged, seed, HybridAStarParker())
+                    runs["hybrid"].append(_episode(r, wall, cpu))
                 if perception is not None:
                     r, wall, cpu = _timed(run_perception_episode, perception, seed,
                                           PerceptionParker(detector, spec, every=options.every),
@@ -192,19 +199,19 @@ class PlannerSuite(Suite):
                 bar.update(1)
         summaries = {p: _summary(episodes) for p, episodes in runs.items()}
         data.update(seeds=list(seeds), summaries=summaries, episodes=runs)
-        if len(runs) == 2:
+        if "geometric" in runs and "perception" in runs:
             data["both_parked"] = sum(g["outcome"] == p["outcome"] == "parked"
                                       for g, p in zip(runs["geometric"], runs["perception"]))
         return Outcome(_figures(summaries, scene, options.episodes), data)
 
 
 def _figures(summaries: dict[str, dict[str, Any]], scene: str, episodes: int) -> list[Figure]:
-    """Share parked per planner (the perception one against the geometric one) and the median episode time."""
+    """Share parked per planner (the others against the geometric one) and the median episode time."""
     share = {p: 100.0 * s["parked"] / s["episodes"] for p, s in summaries.items()}
     figures = []
     for planner, s in summaries.items():
         where = f"{PLANNERS[planner]} on {scene}"
-        ref = share.get("geometric") if planner == "perception" else None
+        ref = share.get("geometric") if planner != "geometric" else None
         figures.append(Figure(f"{where}: parked, {episodes} random starts", share[planner], "%", reference=ref,
                               reference_label=None if ref is None else PLANNERS["geometric"], better="higher"))
         figures.append(Figure(f"{where}: one episode (median of {episodes})", s["episode_ms"].wall_ms, "ms",
