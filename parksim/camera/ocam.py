@@ -346,6 +346,22 @@ class OCamFisheye(CameraModel):
         p, dp = _polyval(k, rho), _polyval(_polyder(k), rho)
         return ((rho * rho + p * p) / (rho * dp - p)).to(theta.dtype)   # 1 / (d theta / d rho)
 
+    def radial_polynomials(self) -> tuple[Tensor | None, Tensor, float]:
+        """The radial map as compiled kernels evaluate it (``parksim.render._project_kernels._ocam_rho``).
+
+        Returns:
+            ``(ss, series, rho_hi)``, float64, lowest degree first. invpol models: ``ss`` None and ``series``
+            ``(P - 1,)`` with ``rho(theta) = sum_j series_j theta^(j + 1)`` (``invpol`` about the axis, constant
+            dropped, as ``q``). ss models: ``ss`` ``(S,)``, ``series`` the ``invpol`` seeding the radius solve
+            (``(0,)`` when the file has none) and ``rho_hi`` its bracket (0 for invpol models).
+        """
+        k = self.k.detach().to(torch.float64)
+        s = self._about_axis(k)
+        if s is not None:
+            return None, s[1:], 0.0
+        seed = torch.zeros(0, dtype=torch.float64) if self.other is None else self.other.detach().to(torch.float64)
+        return k, seed, self._rho_hi
+
     def _solve_theta(self, rho: Tensor, k: Tensor) -> Tensor:
         if not self.by_ss:
             return super()._solve_theta(rho, k)

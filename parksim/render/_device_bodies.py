@@ -1,7 +1,8 @@
 """One work item of the device projection kernels, compiled for the GPU (``_cuda_kernels``) and for the CPU (here).
 
 A work item of the forward is one (view, Gaussian) pair: world -> camera, cull, 7-point UT through the exact lens
-with the adaptive fifth-degree blend, blur, eigenvalue clamp, conic, distance and the SH colour along the view ray
+with the adaptive fifth-degree blend (or, with ``opts[EWA]``, the first-order footprint of the lens's Jacobian),
+blur, eigenvalue clamp, conic, distance and the SH colour along the view ray
 (the steps of ``_views_kernels``, one Gaussian at a time instead of a vectorised chunk). A work item of the backward
 is one Gaussian over every view it was drawn in, so that its gradients are summed in registers and written once (no
 atomics, deterministic). Both call the per-Gaussian helpers of ``_project_kernels`` and ``_sh_kernels`` that the CPU
@@ -73,6 +74,25 @@ def _sh_rgb(sh: np.ndarray, g: int, n_basis: int, basis: np.ndarray) -> tuple[fl
     return r + 0.5, gr + 0.5, b + 0.5
 
 
+@numba.njit(inline="always", cache=True)
+def _jl(out: tuple[float, ...], row: int, L: np.ndarray, j: int) -> float:
+    """``(J L)[row, j]`` for the Jacobian rows ``out[2:8]`` of ``_project_kernels._project``."""
+    return (out[2 + 3 * row] * L[0, j] + out[3 + 3 * row] * L[1, j] + out[4 + 3 * row] * L[2, j])
+
+
+@numba.njit(inline="always", cache=True)
+def _ewa_moments(out: tuple[float, ...], L: np.ndarray) -> tuple[float, float, float, float, float]:
+    """First-order footprint from the projected centre ``out`` (``_project``): ``(u, v)`` and ``J L L^T J^T`` as
+    ``(a, b, c)``, as ``projection._ewa``."""
+    a = b = c = 0.0
+    for j in range(3):
+        r0, r1 = _jl(out, 0, L, j), _jl(out, 1, L, j)
+        a += r0 * r0
+        b += r0 * r1
+        c += r1 * r1
+    return out[0], out[1], a, b, c
+
+
 @numba.njit(cache=True, error_model="numpy")
 def view_forward(v: int, g: int, means: np.ndarray, quats: np.ndarray, log_scales: np.ndarray, sh: np.ndarray,
                  sh_degree: int, rots: np.ndarray, trans: np.ndarray, centres: np.ndarray, models: np.ndarray,
@@ -94,10 +114,15 @@ def view_forward(v: int, g: int, means: np.ndarray, quats: np.ndarray, log_scale
         return
     sigma = _shape(quats, log_scales, g, q, s, R)
     pk._rotate_scaled(rots[v], R, s, L)
-    pk._sigma_points(models[v], lens, opt, x, y, z, L, z7, uv7, False)
-    m7 = pk._moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
-    pk._ut_blend(models[v], lens, opt, x, y, z, sigma, L, m7, z19, wm19, wc19, uv19, mom, False)
-    u, w, a, b, c, depth, _, ok = pk._clamped(mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4], x, y, z, opt)
+    if opt[pk.EWA] > 0:
+        mean_u, mean_v, a, b, c = _ewa_moments(pk._project(models[v], lens, opt[pk.AXIS_EPS], opt[pk.TINY], x, y, z),
+                                               L)
+    else:
+        pk._sigma_points(models[v], lens, opt, x, y, z, L, z7, uv7, False)
+        m7 = pk._moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
+        pk._ut_blend(models[v], lens, opt, x, y, z, sigma, L, m7, z19, wm19, wc19, uv19, mom, False)
+        mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
+    u, w, a, b, c, depth, _, ok = pk._clamped(mean_u, mean_v, a, b, c, x, y, z, opt)
     if not ok:
         return
     det = a * c - b * b
@@ -108,6 +133,88 @@ def view_forward(v: int, g: int, means: np.ndarray, quats: np.ndarray, log_scale
     r, gr, bl = _sh_rgb(sh, g, sh_basis(sh_degree, dx, dy, dz, basis), basis)
     out_colors[v, g, 0], out_colors[v, g, 1], out_colors[v, g, 2] = max(r, 0.0), max(gr, 0.0), max(bl, 0.0)
     out_drawn[v, g] = 1
+
+
+@numba.njit(inline="always", cache=True)
+def _moments_backward_start(mean_u: float, mean_v: float, a: float, b: float, c: float, x: float, y: float,
+                            z: float, gd: float, g_mu: np.ndarray, g_L: np.ndarray) -> bool:
+    """The distance's gradient into ``g_mu``, zeros into ``g_L``; whether the moments are finite (else the
+    footprint was zeroed and passes no more gradient)."""
+    n = math.sqrt(x * x + y * y + z * z)
+    g_mu[0], g_mu[1], g_mu[2] = gd * x / n, gd * y / n, gd * z / n
+    for r in range(3):
+        for j in range(3):
+            g_L[r, j] = 0.0
+    return (math.isfinite(mean_u) and math.isfinite(mean_v) and math.isfinite(a) and math.isfinite(b)
+            and math.isfinite(c))
+
+
+@numba.njit(inline="always", cache=True)
+def _covariance_backward(a: float, b: float, c: float, opt: np.ndarray, gc0: float, gc1: float, gc2: float
+                         ) -> tuple[float, float, float]:
+    """Back from the conic's gradient ``(gc0, gc1, gc2)`` through the inverse, the eigenvalue clamp and the blur to
+    the footprint's covariance ``(a, b, c)``."""
+    blur, lo, hi, tiny = opt[pk.BLUR], opt[pk.LO], opt[pk.HI], opt[pk.TINY]
+    _, _, _, _, _, _, ca, cb, cc = pk._eig_clamp(a + blur, b, c + blur, lo, hi, tiny)
+    det = ca * cc - cb * cb
+    gdet = -(gc0 * cc - gc1 * cb + gc2 * ca) / (det * det)
+    return pk._eig_clamp_backward(a + blur, b, c + blur, lo, hi, tiny, gc2 / det + gdet * cc,
+                                  -gc1 / det - 2 * gdet * cb, gc0 / det + gdet * ca)
+
+
+HESSIAN_STEP = 6e-6
+"""Central-difference step of the EWA backward: ``HESSIAN_STEP (r^2 |p|)^(1/3)`` for a centre at distance ``|p|``
+and ``r`` off the optical axis (``r`` at least ``1e-6 |p|``). The Jacobian varies on the scale ``r`` (lenses with
+even powers of theta are not twice differentiable on the axis), so truncation is ``(h / r)^2`` and rounding
+``eps |p| / h``: this step balances them, ~1e-10 relative in the open field and ~1e-7 at ``r = 1e-6 |p|``, below
+float32's spacing everywhere."""
+
+
+@numba.njit(inline="always", cache=True)
+def _ewa_backward(model: int, lens: np.ndarray, opt: np.ndarray, x: float, y: float, z: float, L: np.ndarray,
+                  gmu: float, gmv: float, gc0: float, gc1: float, gc2: float, gd: float, g_mu: np.ndarray,
+                  g_L: np.ndarray) -> float:
+    """Back through one view's first-order footprint: the camera-frame centre's gradient into ``g_mu``, ``L``'s into
+    ``g_L``; returns 0 (nothing depends on the largest scale).
+
+    The centre reaches the covariance through the Jacobian ``J(p)``: its gradient there is ``H_u w_u + H_v w_v``
+    (``w`` the rows of ``J``'s gradient), each Hessian-vector product a central difference of the analytic
+    Jacobian along ``w`` in float64 (``HESSIAN_STEP``).
+    """
+    eps, tiny = opt[pk.AXIS_EPS], opt[pk.TINY]
+    out = pk._project(model, lens, eps, tiny, x, y, z)
+    mean_u, mean_v, a, b, c = _ewa_moments(out, L)
+    if not _moments_backward_start(mean_u, mean_v, a, b, c, x, y, z, gd, g_mu, g_L):
+        return 0.0
+    ga, gb, gcc = _covariance_backward(a, b, c, opt, gc0, gc1, gc2)
+    w0x = w0y = w0z = w1x = w1y = w1z = 0.0   # d loss / d J, rows u and v
+    for j in range(3):
+        r0, r1 = _jl(out, 0, L, j), _jl(out, 1, L, j)
+        g0, g1 = 2.0 * ga * r0 + gb * r1, gb * r0 + 2.0 * gcc * r1     # d loss / d (J L)[:, j]
+        for r in range(3):
+            g_L[r, j] += out[2 + r] * g0 + out[5 + r] * g1
+        w0x += g0 * L[0, j]
+        w0y += g0 * L[1, j]
+        w0z += g0 * L[2, j]
+        w1x += g1 * L[0, j]
+        w1y += g1 * L[1, j]
+        w1z += g1 * L[2, j]
+    for k in range(3):
+        g_mu[k] += gmu * out[2 + k] + gmv * out[5 + k]
+    n = math.sqrt(x * x + y * y + z * z)
+    off = max(math.sqrt(x * x + y * y), 1e-6 * n)
+    h = HESSIAN_STEP * (off * off * n) ** (1.0 / 3.0)
+    for row in range(2):
+        wx, wy, wz = (w0x, w0y, w0z) if row == 0 else (w1x, w1y, w1z)
+        norm = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if not norm > 0.0:
+            continue
+        dx, dy, dz = h * wx / norm, h * wy / norm, h * wz / norm
+        plus = pk._project(model, lens, eps, tiny, x + dx, y + dy, z + dz)
+        minus = pk._project(model, lens, eps, tiny, x - dx, y - dy, z - dz)
+        for k in range(3):
+            g_mu[k] += norm * (plus[2 + 3 * row + k] - minus[2 + 3 * row + k]) / (2.0 * h)
+    return 0.0
 
 
 @numba.njit(inline="always", cache=True)
@@ -122,21 +229,9 @@ def _footprint_backward(model: int, lens: np.ndarray, opt: np.ndarray, x: float,
     m7 = pk._moments(uv7[:, 0], uv7[:, 1], 0, 1, wm7, wc7)
     rich, w, dwx, dwy, dwz, dws = pk._ut_blend(model, lens, opt, x, y, z, sigma, L, m7, z19, wm19, wc19, uv19,
                                                mom, True)
-    n = math.sqrt(x * x + y * y + z * z)
-    g_mu[0], g_mu[1], g_mu[2] = gd * x / n, gd * y / n, gd * z / n
-    for r in range(3):
-        for j in range(3):
-            g_L[r, j] = 0.0
-    mean_u, mean_v, a, b, c = mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4]
-    if not (math.isfinite(mean_u) and math.isfinite(mean_v) and math.isfinite(a) and math.isfinite(b)
-            and math.isfinite(c)):
+    if not _moments_backward_start(mom[2, 0], mom[2, 1], mom[2, 2], mom[2, 3], mom[2, 4], x, y, z, gd, g_mu, g_L):
         return 0.0
-    blur, lo, hi, tiny = opt[pk.BLUR], opt[pk.LO], opt[pk.HI], opt[pk.TINY]
-    _, _, _, _, _, _, ca, cb, cc = pk._eig_clamp(a + blur, b, c + blur, lo, hi, tiny)
-    det = ca * cc - cb * cb
-    gdet = -(gc0 * cc - gc1 * cb + gc2 * ca) / (det * det)
-    ga, gb, gcc = pk._eig_clamp_backward(a + blur, b, c + blur, lo, hi, tiny, gc2 / det + gdet * cc,
-                                         -gc1 / det - 2 * gdet * cb, gc0 / det + gdet * ca)
+    ga, gb, gcc = _covariance_backward(mom[2, 2], mom[2, 3], mom[2, 4], opt, gc0, gc1, gc2)
     pk._moments_backward(uv7, wm7, wc7, gmu, gmv, ga, gb, gcc, 1.0 - w, z7, g_mu, g_L)
     if not rich:
         return 0.0
@@ -203,10 +298,15 @@ def gaussian_backward(g: int, means: np.ndarray, quats: np.ndarray, log_scales: 
         rot = rots[v]
         x, y, z, mx, my, mz = _to_camera(rots, trans, v, means, g)
         pk._rotate_scaled(rot, R, s, L)
-        g_sigma = _footprint_backward(models[v], lenses[v], opts[v], x, y, z, sigma, L, z7, wm7, wc7, z19, wm19,
-                                      wc19, uv7, uv19, mom, float(g_means2d[v, g, 0]), float(g_means2d[v, g, 1]),
-                                      float(g_conics[v, g, 0]), float(g_conics[v, g, 1]), float(g_conics[v, g, 2]),
-                                      float(g_depths[v, g]), g_mu, g_L)
+        gmu, gmv = float(g_means2d[v, g, 0]), float(g_means2d[v, g, 1])
+        gc0, gc1, gc2 = float(g_conics[v, g, 0]), float(g_conics[v, g, 1]), float(g_conics[v, g, 2])
+        if opts[v, pk.EWA] > 0:
+            g_sigma = _ewa_backward(models[v], lenses[v], opts[v], x, y, z, L, gmu, gmv, gc0, gc1, gc2,
+                                    float(g_depths[v, g]), g_mu, g_L)
+        else:
+            g_sigma = _footprint_backward(models[v], lenses[v], opts[v], x, y, z, sigma, L, z7, wm7, wc7, z19, wm19,
+                                          wc19, uv7, uv19, mom, gmu, gmv, gc0, gc1, gc2, float(g_depths[v, g]), g_mu,
+                                          g_L)
         # sigma = exp(max log-scale): torch's amax splits the gradient evenly between ties
         ties = (s[0] == sigma) + (s[1] == sigma) + (s[2] == sigma)
         for k in range(9):

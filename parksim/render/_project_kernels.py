@@ -23,19 +23,30 @@ import math
 import numba
 import numpy as np
 
-OPENCV_FISHEYE, RADIAL_POLY, PINHOLE = 0, 1, 2
-"""Lens model ids: rho = theta (1 + k1 t^2 + ...), rho = k1 t + k2 t^2 + ..., rho = tan(theta)."""
+OPENCV_FISHEYE, RADIAL_POLY, PINHOLE, OCAM = 0, 1, 2, 3
+"""Lens model ids: rho = theta (1 + k1 t^2 + ...), rho = k1 t + k2 t^2 + ..., rho = tan(theta), and OCamCalib's
+polynomial with its affine (``camera.ocam``; served by the device kernels only)."""
 
 FX, FY, CX, CY, THETA_MAX, RHO_MAX, Q0, K1 = range(8)
 COS_MAX, SIN_MAX = K1 + 4, K1 + 5
 """Slots of the float64 ``lens`` array; k1..k4 sit at ``K1 .. K1 + 3``, then cos and sin of ``theta_max``."""
+AFF_D, AFF_E, RHO_HI, N_SS, N_SERIES, POLY = range(SIN_MAX + 1, SIN_MAX + 7)
+"""OCam slots after those: the affine's off-diagonal ``d, e``, the sensor radius of ``theta_max`` (ss models), the
+lengths of the two polynomials, then their coefficients from ``POLY`` on, lowest degree first: ``ss`` (``N_SS``
+terms, 0 for invpol models), then the series (``N_SERIES`` terms): for an invpol model ``rho(theta) = sum_j
+a_j theta^(j+1)`` (``invpol`` expanded about the axis, its constant dropped), for an ss model ``invpol``, Newton's
+starting guess (0 terms: none)."""
+NEWTON_STEPS = 40
+"""Most Newton steps of the ss models' radius solve (it stops at rounding level, in a handful)."""
 LensSlots = np.ndarray | tuple[float, ...]
 """The ``lens`` array, or a tuple of its leading slots (which ``_project_loop`` reads into registers)."""
 
-AXIS_EPS, TINY, ADAPTIVE, THETA_MIN, BLEND, REL_SIZE, BLUR, LO, HI, EXTENT, WIDTH, HEIGHT, NEAR, FAR, CULL = range(15)
+(AXIS_EPS, TINY, ADAPTIVE, THETA_MIN, BLEND, REL_SIZE, BLUR, LO, HI, EXTENT, WIDTH, HEIGHT, NEAR, FAR, CULL,
+ EWA) = range(16)
 """Slots of the float64 ``opts`` array: dtype limits, adaptive rule, 2D blur and clamps, image size, culling
-(``CULL`` 0 keeps every Gaussian: only for measuring what culling saves)."""
-N_OPTS = 15
+(``CULL`` 0 keeps every Gaussian: only for measuring what culling saves), and ``EWA`` 1 for the first-order
+footprint instead of the UT (read by the device kernels only)."""
+N_OPTS = 16
 
 N_ROT_GRAD = 9
 """Columns of the per-chunk partial gradient of ``R_cam_world`` (row major)."""
@@ -82,8 +93,53 @@ def _atan2(r: float, z: float) -> float:
 
 
 @numba.njit(inline="always", cache=True)
+def _horner(lens: LensSlots, start: int, count: int, x: float) -> tuple[float, float]:
+    """``sum_i c_i x^i`` and its derivative in ``x`` for the coefficients ``lens[start:start + count]``."""
+    p = dp = 0.0
+    for i in range(start + count - 1, start - 1, -1):
+        dp = dp * x + p
+        p = p * x + lens[i]
+    return p, dp
+
+
+@numba.njit(inline="always", cache=True)
+def _ocam_rho(lens: LensSlots, t: float) -> tuple[float, float]:
+    """``rho(theta)`` and ``d rho / d theta`` of an OCam lens, as ``OCamFisheye.q`` and ``.drho``.
+
+    invpol models: the series ``sum_j a_j theta^(j+1)``. ss models: the root of ``rho cos(theta) + ss(rho)
+    sin(theta)`` on ``[0, rho_hi]`` by Newton kept in the sign bracket (bisection where a step leaves it), from
+    ``invpol`` when the file has it; then ``d rho / d theta = (rho^2 + ss^2) / (rho ss' - ss)``.
+    """
+    n_ss, n_series = int(lens[N_SS]), int(lens[N_SERIES])
+    if n_ss == 0:
+        a, da = _horner(lens, POLY, n_series, t)
+        return t * a, a + t * da
+    hi = lens[RHO_HI]
+    lo = 0.0
+    rho = _horner(lens, POLY + n_ss, n_series, t - 0.5 * math.pi)[0] if n_series > 0 else t * hi / lens[THETA_MAX]
+    rho = min(max(rho, lo), hi)
+    cos, sin = math.cos(t), math.sin(t)
+    tol = 8 * 2.220446049250313e-16 * hi
+    for _ in range(NEWTON_STEPS):
+        p, dp = _horner(lens, POLY, n_ss, rho)
+        f = rho * cos + p * sin
+        lo = rho if f <= 0 else lo
+        hi = rho if f >= 0 else hi
+        step = rho - f / (cos + dp * sin)
+        new = step if (lo <= step <= hi and math.isfinite(step)) else 0.5 * (lo + hi)
+        done = abs(new - rho) <= tol
+        rho = new
+        if done:
+            break
+    p, dp = _horner(lens, POLY, n_ss, rho)
+    return rho, (rho * rho + p * p) / (rho * dp - p)
+
+
+@numba.njit(inline="always", cache=True)
 def _rho(model: int, lens: LensSlots, t: float) -> tuple[float, float]:
     """``rho(theta)`` and ``d rho / d theta`` of the lens model ``model``."""
+    if model == OCAM:
+        return _ocam_rho(lens, t)
     k1, k2, k3, k4 = lens[K1], lens[K1 + 1], lens[K1 + 2], lens[K1 + 3]
     if model == OPENCV_FISHEYE:
         t2 = t * t
@@ -145,6 +201,13 @@ def _project(model: int, lens: LensSlots, axis_eps: float, tiny: float, x: float
     fx, fy = lens[FX], lens[FY]
     if centre:   # a select too once inlined into a loop
         return lens[CX], lens[CY], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if model == OCAM:   # the affine [[fx, e], [d, fy]] on (s x, s y)
+        d, e = lens[AFF_D], lens[AFF_E]
+        ax, ay, az = c * (s + x * sx), c * x * sy, c * x * sz     # d(s x)/dp
+        bx, by, bz = c * y * sx, c * (s + y * sy), c * y * sz     # d(s y)/dp
+        return (fx * s * x + e * s * y + lens[CX], d * s * x + fy * s * y + lens[CY],
+                fx * ax + e * bx, fx * ay + e * by, fx * az + e * bz, d * ax + fy * bx, d * ay + fy * by,
+                d * az + fy * bz)
     gx, gy = fx * c, fy * c     # d/dp of a function of c p
     return (fx * s * x + lens[CX], fy * s * y + lens[CY],
             gx * (s + x * sx), gx * x * sy, gx * x * sz, gy * y * sx, gy * (s + y * sy), gy * y * sz)
@@ -157,12 +220,13 @@ def _project_loop(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pt
     and with ``jac`` the Jacobian rows ``du/dp, dv/dp`` in ``uv[2:8]``.
 
     The lens slots are read into a tuple first: loads from the array could alias ``uv`` and would keep
-    LLVM from vectorising.
+    LLVM from vectorising. An OCam lens reads its polynomials from the array (its solve has a loop anyway).
     """
     values = (lens[FX], lens[FY], lens[CX], lens[CY], lens[THETA_MAX], lens[RHO_MAX], lens[Q0], lens[K1],
               lens[K1 + 1], lens[K1 + 2], lens[K1 + 3])
     for i in range(n):
-        out = _project(model, values, axis_eps, tiny, pts[0, i], pts[1, i], pts[2, i])
+        out = (_project(model, lens, axis_eps, tiny, pts[0, i], pts[1, i], pts[2, i]) if model == OCAM
+               else _project(model, values, axis_eps, tiny, pts[0, i], pts[1, i], pts[2, i]))
         uv[0, i] = out[0]
         uv[1, i] = out[1]
         if jac:
@@ -177,8 +241,10 @@ def project_batch(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pt
         _project_loop(OPENCV_FISHEYE, lens, axis_eps, tiny, pts, uv, n, jac)
     elif model == RADIAL_POLY:
         _project_loop(RADIAL_POLY, lens, axis_eps, tiny, pts, uv, n, jac)
-    else:
+    elif model == PINHOLE:
         _project_loop(PINHOLE, lens, axis_eps, tiny, pts, uv, n, jac)
+    else:
+        _project_loop(OCAM, lens, axis_eps, tiny, pts, uv, n, jac)
 
 
 @numba.njit(inline="always", cache=True)

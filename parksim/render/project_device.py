@@ -21,8 +21,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import CameraModel
+from ..camera import CameraModel, OCamFisheye
 from . import _device_bodies as body
+from . import _project_kernels as pk
 from .project_fast import _MODEL_IDS, FusedUTConfig, _lens, _opts
 
 __all__ = ["DeviceViews", "device_supported", "project_views_device", "view_transforms"]
@@ -46,9 +47,35 @@ class DeviceViews(NamedTuple):
     drawn: Tensor
 
 
+_DEVICE_MODEL_IDS: dict[type[CameraModel], int] = {**_MODEL_IDS, OCamFisheye: pk.OCAM}
+"""The fused CPU kernels' lens models and OCam."""
+
+
+def _device_lens(camera: CameraModel) -> np.ndarray:
+    """The kernels' ``lens`` array (``_project_kernels``' slots); an OCam lens adds its affine and polynomials."""
+    if not isinstance(camera, OCamFisheye):
+        return _lens(camera)
+    ss, series, rho_hi = camera.radial_polynomials()
+    ss_np = np.zeros(0) if ss is None else ss.numpy()
+    head = np.array([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.theta_max,
+                     camera.rho_max, float(camera.q(torch.zeros((), dtype=torch.float64), camera.k.detach())),
+                     0.0, 0.0, 0.0, 0.0, np.cos(camera.theta_max), np.sin(camera.theta_max), float(camera.d),
+                     float(camera.e), rho_hi, len(ss_np), len(series)], dtype=np.float64)
+    return np.concatenate([head, ss_np, series.numpy()])
+
+
+def _stacked_lenses(cameras: Sequence[CameraModel]) -> np.ndarray:
+    """``[V, width]`` lens arrays, zero-padded to the longest (OCam polynomials differ in length)."""
+    rows = [_device_lens(cam) for cam in cameras]
+    out = np.zeros((len(rows), max(len(r) for r in rows)), dtype=np.float64)
+    for i, r in enumerate(rows):
+        out[i, :len(r)] = r
+    return out
+
+
 def device_supported(camera: CameraModel) -> bool:
-    """Whether the kernels serve ``camera``: a built-in lens model (OpenCV/KB fisheye, radial polynomial, pinhole)
-    whose intrinsics need no gradient.
+    """Whether the kernels serve ``camera``: a built-in lens model (OpenCV/KB fisheye, radial polynomial, pinhole,
+    OCam) whose intrinsics need no gradient.
 
     Args:
         camera: a lens model.
@@ -56,7 +83,7 @@ def device_supported(camera: CameraModel) -> bool:
     Returns:
         True when ``project_views_device`` can project into it.
     """
-    return type(camera) in _MODEL_IDS and not any(t.requires_grad for t in (camera.fx, camera.fy, camera.cx,
+    return type(camera) in _DEVICE_MODEL_IDS and not any(t.requires_grad for t in (camera.fx, camera.fy, camera.cx,
                                                                           camera.cy, camera.k))
 
 
@@ -86,8 +113,8 @@ _STATIC_CACHE_SIZE = 64
 def _static(cameras: Sequence[CameraModel], cfgs: Sequence[FusedUTConfig], dtype: torch.dtype,
             device: torch.device) -> _Static:
     """The lens, option and sigma-point arrays of the views, on ``device`` (built on the host once per content)."""
-    models = np.array([_MODEL_IDS[type(cam)] for cam in cameras], dtype=np.int64)
-    lenses = np.stack([_lens(cam) for cam in cameras])
+    models = np.array([_DEVICE_MODEL_IDS[type(cam)] for cam in cameras], dtype=np.int64)
+    lenses = _stacked_lenses(cameras)
     opts = np.stack([_opts(cfg, cam, dtype) for cfg, cam in zip(cfgs, cameras)])
     sets = [t.detach().to(torch.float64).numpy() for t in (*cfgs[0].unscented, *cfgs[0].fifth_degree)]
     key = (str(device), models.tobytes(), lenses.tobytes(), opts.tobytes(), *(a.tobytes() for a in sets))

@@ -35,7 +35,8 @@ class FusedUTConfig:
 
     Angles in radians; ``adaptive_*`` as ``UTParams`` (blend ramp ``adaptive_blend_theta`` wide),
     ``blur`` the 2D blur in px^2, eigenvalues clamped to ``[blur, (max_radius / extent_sigmas)^2]``;
-    ``cull`` False projects every Gaussian (to measure what culling saves).
+    ``cull`` False projects every Gaussian (to measure what culling saves); ``ewa`` asks the device kernels for
+    the first-order footprint (the CPU fused kernels are UT only).
     """
 
     unscented: tuple[Tensor, Tensor, Tensor]
@@ -50,6 +51,7 @@ class FusedUTConfig:
     extent_sigmas: float
     max_radius: float
     cull: bool = True
+    ewa: bool = False
 
 
 def fused_supported(camera: CameraModel, means: Tensor, quats: Tensor, log_scales: Tensor,
@@ -90,6 +92,7 @@ def _opts(cfg: FusedUTConfig, camera: CameraModel, dtype: torch.dtype) -> np.nda
     o[pk.NEAR] = cfg.near
     o[pk.FAR] = cfg.far
     o[pk.CULL] = float(cfg.cull)
+    o[pk.EWA] = float(cfg.ewa)
     return o
 
 

@@ -301,7 +301,8 @@ def _clamp_eigenvalues(cov: Tensor, lo: float, hi: float) -> Tensor:
     return torch.where(need[..., None], clamped, cov)
 
 
-def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bool = True) -> FusedUTConfig:
+def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bool = True, ewa: bool = False
+                 ) -> FusedUTConfig:
     """This module's UT rules and limits, as the fused kernels take them.
 
     Args:
@@ -310,6 +311,7 @@ def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bo
         far: farthest distance kept (m).
         cap: largest 3-sigma footprint radius in pixels.
         cull: False keeps every Gaussian.
+        ewa: the first-order (EWA) footprint instead of the UT (device kernels only).
 
     Returns:
         The kernels' configuration.
@@ -317,7 +319,7 @@ def fused_config(params: UTParams, near: float, far: float, cap: float, cull: bo
     ut, fifth = SigmaPoints.unscented(params.alpha, params.beta, params.kappa), SigmaPoints.fifth_degree()
     return FusedUTConfig((ut.z, ut.wm, ut.wc), (fifth.z, fifth.wm, fifth.wc), params.adaptive,
                          math.radians(params.adaptive_min_theta_deg), math.radians(_BLEND_THETA_DEG),
-                         params.adaptive_min_rel_size, near, far, BLUR_PX2, _EXTENT_SIGMAS, cap, cull)
+                         params.adaptive_min_rel_size, near, far, BLUR_PX2, _EXTENT_SIGMAS, cap, cull, ewa)
 
 
 def project_gaussians(means_cam: Tensor, cov: Tensor | tuple[Tensor, Tensor, Tensor | None], camera: CameraModel,
