@@ -8,7 +8,13 @@ steering, and the target slot in the ego frame; ``privileged=True`` adds the wor
 parked when its body centre is within ``pos_tol`` of the slot centre, its heading within ``yaw_tol`` of
 the slot axis (either way) and it has stopped. Touching a pillar, parked car or wall ends the episode.
 Episodes are truncated by gymnasium's ``TimeLimit`` (``max_episode_steps=500`` in the registration).
-The full contract (spaces, reward, ends, seeding) is in docs/env.md.
+With ``scenario=`` (a scenario file, or a set folder sampled on reset) each episode is a scenario's
+(``parksim.scenarios.episode.Episode``: its start, slot, parked cars, moving actors, time limit and tolerances)
+and the last step's info holds its ``scorecard``. The full contract (spaces, reward, ends, seeding) is in
+docs/env.md; the rules themselves are ``parksim.scenarios.task``'s:
+
+    >>> to_controls([1.0, -0.5], VehicleParams(max_accel=2.0, max_steer=0.5))
+    (2.0, -0.25)
 """
 
 from __future__ import annotations
@@ -24,101 +30,36 @@ from gymnasium import spaces
 
 from .client import RemoteSim
 from .frames import Frame
+from .scenarios.episode import Episode
+from .scenarios.spec import Scenario, load_scenarios
+from .scenarios.task import (
+    drive,
+    free_slots,
+    heading_error,
+    observation,
+    parking_errors,
+    progress_cost,
+    reward,
+    slot_in_ego_frame,
+    slot_pose,
+    step_info,
+    to_action,
+    to_controls,
+)
 from .sim import LocalSim
+from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, wrap_angle
 
 if TYPE_CHECKING:
     from .ray_sim import RaySim
-from .vehicle import Obstacles, VehicleParams, VehicleState, car_centre, footprint, step, wrap_angle
 
 __all__ = ["ParkingEnv", "slot_pose", "free_slots", "heading_error", "to_controls", "to_action",
            "MAX_EPISODE_STEPS"]
 
 MAX_EPISODE_STEPS = 500
 """Steps (50 s simulated) before ``TimeLimit`` truncates an episode of ``gym.make("ParkSim-v0")``."""
-_SUCCESS_BONUS, _COLLISION_PENALTY, _STEP_COST, _YAW_WEIGHT = 10.0, 10.0, 0.01, 0.5
 _TOP_PX_PER_M = 16
 _MARGIN_M = 5.0
 """Slack (m) around the scene bounds in the observation boxes (a start pose may sit near a wall)."""
-
-
-def slot_pose(slot: dict[str, Any]) -> tuple[np.ndarray, float]:
-    """Slot centre (world xy) and its parking heading: into the slot, or along it for parallel slots.
-
-    Args:
-        slot: a map slot with ``corners`` ``[4, 2]`` (world metres; the first two on the entrance side).
-
-    Returns:
-        ``(centre [2], yaw)``: the centre in metres and the heading in radians along the slot's longer side.
-    """
-    c = np.asarray(slot["corners"], np.float64)
-    centre = c.mean(axis=0)
-    into = c[2:].mean(axis=0) - c[:2].mean(axis=0)
-    along = c[1] - c[0]
-    axis = along if np.linalg.norm(along) > np.linalg.norm(into) else into
-    return centre, math.atan2(axis[1], axis[0])
-
-
-def free_slots(world_map: dict[str, Any]) -> list[dict[str, Any]]:
-    """The map's slots that no parked car occupies.
-
-    Args:
-        world_map: a scene's ``map.json`` content.
-
-    Returns:
-        The slots whose ``occupied`` is false or absent, in map order.
-    """
-    return [s for s in world_map.get("slots", []) if not s.get("occupied", False)]
-
-
-def heading_error(yaw: float, slot_yaw: float) -> float:
-    """Heading error to the slot axis in [0, pi/2]: forward or backward parking both count.
-
-    Args:
-        yaw: the car's heading in radians.
-        slot_yaw: the slot's heading in radians (``slot_pose``).
-
-    Returns:
-        The smaller angle between the car and the slot axis, radians.
-
-    Example:
-        >>> round(heading_error(math.pi - 0.1, 0.0), 6)
-        0.1
-    """
-    e = abs(float(wrap_angle(yaw - slot_yaw)))
-    return min(e, math.pi - e)
-
-
-def to_controls(action: Sequence[float] | np.ndarray, p: VehicleParams) -> tuple[float, float]:
-    """(acceleration m/s^2, steering rad) for a normalised action, clipped to [-1, 1] first.
-
-    ``action[0]`` = +1 is ``p.max_accel``, -1 is ``-p.max_decel`` (linear on each side of 0: the car
-    brakes harder than it accelerates); ``action[1]`` = +-1 is +-``p.max_steer`` (positive steers left).
-
-    Args:
-        action: ``[2]`` normalised ``(acceleration, steering)``.
-        p: the vehicle's limits.
-
-    Returns:
-        ``(acceleration, steering)`` in m/s^2 and radians.
-    """
-    a = np.clip(np.asarray(action, np.float64).reshape(2), -1.0, 1.0)
-    accel = a[0] * (p.max_accel if a[0] >= 0 else p.max_decel)
-    return float(accel), float(a[1] * p.max_steer)
-
-
-def to_action(accel: float, steer: float, p: VehicleParams) -> np.ndarray:
-    """Inverse of ``to_controls``: the float32 normalised action for physical controls (clipped to the limits).
-
-    Args:
-        accel: acceleration in m/s^2 (negative brakes).
-        steer: steering angle in radians (positive left).
-        p: the vehicle's limits.
-
-    Returns:
-        ``[2]`` float32 action in [-1, 1].
-    """
-    a = accel / (p.max_accel if accel >= 0 else p.max_decel)
-    return np.clip(np.array([a, steer / p.max_steer], np.float32), -1.0, 1.0)
 
 
 class ParkingEnv(gym.Env):
@@ -131,7 +72,7 @@ class ParkingEnv(gym.Env):
                  cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 0.25,
                  privileged: bool = False, pos_tol: float = 0.35, yaw_tol: float = 0.15,
                  vehicle: VehicleParams = VehicleParams(), render_mode: str | None = None,
-                 device: str | None = None) -> None:
+                 device: str | None = None, scenario: str | Path | None = None) -> None:
         """Open the frame source and build the spaces (docs/env.md has the full contract).
 
         Args:
@@ -150,10 +91,15 @@ class ParkingEnv(gym.Env):
             render_mode: None, or "rgb_array" for ``render()``'s top view.
             device: where ``bundle=`` renders: ``"auto"`` (None: the same), ``"cpu"`` or ``"cuda[:N]"``
                 (``LocalSim``). A server or a given sim renders on its own device, so it takes only None or auto.
+            scenario: a scenario file, or a set folder whose scenarios ``reset`` samples with the env's seed; its
+                start, slot, parked cars, actors, time limit and tolerances replace the env's (``pos_tol`` and
+                ``yaw_tol`` are not used then). None: random starts and slots.
 
         Raises:
             ValueError: not exactly one of ``bundle``, ``server``, ``sim``; an unknown ``render_mode``; a
-                ``device`` other than None or auto with ``server`` or ``sim``; a scene without a free slot.
+                ``device`` other than None or auto with ``server`` or ``sim``; a scene without a free slot;
+                ``scenario`` with images from a source that cannot draw its actors (only a ``LocalSim`` can).
+            ScenarioError: ``scenario`` is not a valid scenario file or set, or does not fit the scene's map.
             DeviceError: a bad ``device`` name, or a GPU this machine lacks.
             RequestError: an unknown camera or a too small ``scale``.
         """
@@ -186,6 +132,25 @@ class ParkingEnv(gym.Env):
         self.slot: dict[str, Any] = free_slots(self.world_map)[0]
         self._cost = 0.0
         self._background: np.ndarray | None = None
+        self._scene_map = self.world_map
+        self.scenarios: tuple[Scenario, ...] = ()
+        self._episodes: dict[int, Episode] = {}
+        self.episode: Episode | None = None
+        if scenario is not None:
+            self._open_scenarios(Path(scenario))
+
+    def _open_scenarios(self, path: Path) -> None:
+        """Read the scenario file or set and make each scenario's ``Episode`` once (checked against the map)."""
+        self.scenarios = tuple(load_scenarios(path))
+        if self.renders and not isinstance(self.sim, LocalSim):
+            raise ValueError("scenario= draws its actors into the views in-process: give bundle= or sim=<LocalSim>, "
+                             "or ask for no images (cameras=[], bev=False)")
+        renderer = self.sim if self.renders and isinstance(self.sim, LocalSim) else None
+        root = path if path.is_dir() else path.parent
+        self._episodes = {i: Episode(s, self._scene_map, renderer, cameras=self.cameras, bev=self.bev,
+                                     scale=self.scale, privileged=self.privileged, vehicle=self.vehicle,
+                                     asset_root=root)
+                          for i, s in enumerate(self.scenarios)}
 
     def _state_spaces(self, info: dict[str, Any]) -> dict[str, spaces.Space[Any]]:
         """``state`` = ``[v, steer, slot_x, slot_y, slot_yaw]`` (slot in the ego frame); ``pose`` when privileged."""
@@ -243,17 +208,20 @@ class ParkingEnv(gym.Env):
         Args:
             seed: seeds ``np_random`` (gymnasium's rule: only the first reset needs one).
             options: ``start`` = ``(x, y, yaw)`` (finite, within the scene's bounds plus 5 m; yaw is wrapped to
-                [-pi, pi)) and/or ``slot`` = a free slot's id.
+                [-pi, pi)) and/or ``slot`` = a free slot's id; none with ``scenario=`` (the scenario fixes both).
 
         Returns:
             The info dict (``slot``, ``distance``, ``heading_error``, ``collision``, ``is_success``, ``speed``,
-            and ``pose`` when privileged).
+            and ``pose`` when privileged; with ``scenario=`` also ``scenario``, ``actor_collision``, ``truncated``
+            and ``time``).
 
         Raises:
             ValueError: ``options["start"]`` is not 3 finite numbers within the bounds (nothing is changed then),
-                or ``options["slot"]`` is not a free slot.
+                or ``options["slot"]`` is not a free slot, or options are given with ``scenario=``.
             RuntimeError: no collision-free random start in 200 tries.
         """
+        if self.scenarios:
+            return self._begin_scenario(seed, options)
         options = options or {}
         start = self._given_start(options["start"]) if "start" in options else None
         super().reset(seed=seed)
@@ -269,6 +237,19 @@ class ParkingEnv(gym.Env):
         self._cost = self._progress_cost()
         return self._info(collided=False)
 
+    def _begin_scenario(self, seed: int | None, options: dict[str, Any] | None) -> dict[str, Any]:
+        """``begin`` with ``scenario=``: draw a scenario of the set and start its episode."""
+        if options:
+            raise ValueError(f"reset options {sorted(options)} do not apply with scenario=: the scenario fixes the "
+                             "start and the slot")
+        super().reset(seed=seed)
+        index = int(self.np_random.integers(len(self.scenarios)))
+        self.episode = self._episodes[index]
+        info = self.episode.begin()
+        self.world_map, self.obstacles = self.episode.setup.world_map, self.episode.obstacles   # parked cars added
+        self.state, self.slot, self._background = self.episode.state, self.episode.slot, None
+        return info | {"scenario": self.scenarios[index].name}
+
     def advance(self, action: np.ndarray) -> tuple[float, bool, dict[str, Any]]:
         """Apply one normalised action for 0.1 s without rendering (``step`` = ``advance`` + ``observe``).
 
@@ -276,22 +257,23 @@ class ParkingEnv(gym.Env):
             action: ``[2]`` normalised ``(acceleration, steering)`` (``to_controls``).
 
         Returns:
-            ``(reward, terminated, info)``: terminated when parked or collided.
+            ``(reward, terminated, info)``: terminated when parked or collided (with ``scenario=``, the scenario's
+            time limit sets ``info["truncated"]`` instead, and the episode's last info holds its ``scorecard``).
 
         Raises:
             ValueError: ``action`` holds a NaN or an infinity; it is refused and the state is unchanged.
         """
-        if not np.isfinite(np.asarray(action, np.float64)).all():
-            raise ValueError(f"action {np.asarray(action).tolist()} has a non-finite value (NaN or inf): refused, "
-                             "the vehicle state is unchanged")
-        accel, steer = to_controls(action, self.vehicle)
-        self.state = step(self.state, accel, steer, self.vehicle)
+        if self.episode is not None:
+            r, done, info = self.episode.advance(action)
+            self.state = self.episode.state
+            return r, done and not info["truncated"], info
+        self.state, _ = drive(self.state, action, self.vehicle)
         collided = self.obstacles.collides(self.state.pose, self.vehicle)
         cost = self._progress_cost()
         info = self._info(collided)
-        reward = self._cost - cost - _STEP_COST + _SUCCESS_BONUS * info["is_success"] - _COLLISION_PENALTY * collided
+        r = reward(self._cost, cost, info["is_success"], collided)
         self._cost = cost
-        return float(reward), bool(info["is_success"] or collided), info
+        return r, bool(info["is_success"] or collided), info
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -314,19 +296,20 @@ class ParkingEnv(gym.Env):
         return self.observe(self.frame()), info
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
-        """Apply the normalised ``[acceleration, steering]`` for 0.1 s; never truncates (``TimeLimit`` does).
+        """Apply the normalised ``[acceleration, steering]`` for 0.1 s; truncates only at a scenario's time limit.
 
         Args:
             action: ``[2]`` in [-1, 1] (clipped).
 
         Returns:
-            ``(observation, reward, terminated, truncated=False, info)``.
+            ``(observation, reward, terminated, truncated, info)``; ``truncated`` is False without ``scenario=``
+            (``TimeLimit`` truncates then).
 
         Raises:
             ValueError: ``action`` holds a NaN or an infinity; it is refused and the state is unchanged.
         """
-        reward, terminated, info = self.advance(action)
-        return self.observe(self.frame()), reward, terminated, False, info
+        r, terminated, info = self.advance(action)
+        return self.observe(self.frame()), r, terminated, bool(info.get("truncated", False)), info
 
     # --- measurements --------------------------------------------------------------------
     def errors(self) -> tuple[float, float]:
@@ -335,14 +318,11 @@ class ParkingEnv(gym.Env):
         Returns:
             ``(distance, heading_error)`` at the current state.
         """
-        centre, slot_yaw = slot_pose(self.slot)
-        dist = float(np.linalg.norm(car_centre(self.state.pose, self.vehicle) - centre))
-        return dist, heading_error(self.state.yaw, slot_yaw)
+        return parking_errors(self.state.pose, self.slot, self.vehicle)
 
     def _progress_cost(self) -> float:
         """What the reward decreases: distance + 0.5 heading error."""
-        dist, yaw_err = self.errors()
-        return dist + _YAW_WEIGHT * yaw_err
+        return progress_cost(*self.errors())
 
     def target_pose(self) -> tuple[float, float, float]:
         """Rear-axle pose that parks the car head-in, centred in the target slot.
@@ -361,19 +341,11 @@ class ParkingEnv(gym.Env):
         Returns:
             ``(x, y, yaw)``: metres with x forward, y left and the origin under the rear axle; radians.
         """
-        centre, slot_yaw = slot_pose(self.slot)
-        s = self.state
-        dx, dy = centre[0] - s.x, centre[1] - s.y
-        c, si = math.cos(s.yaw), math.sin(s.yaw)
-        return (c * dx + si * dy, -si * dx + c * dy, float(wrap_angle(slot_yaw - s.yaw)))
+        return slot_in_ego_frame(self.state.pose, self.slot)
 
     def _info(self, collided: bool) -> dict[str, Any]:
         """The step's info dict (see ``begin``)."""
-        dist, yaw_err = self.errors()
-        parked = dist < self.pos_tol and yaw_err < self.yaw_tol and abs(self.state.v) < 0.1
-        info = {"slot": self.slot["id"], "distance": dist, "heading_error": yaw_err, "collision": bool(collided),
-                "is_success": bool(parked and not collided), "speed": self.state.v}
-        return info | {"pose": self.state.pose} if self.privileged else info
+        return step_info(self.state, self.slot, self.vehicle, self.pos_tol, self.yaw_tol, collided, self.privileged)
 
     @property
     def renders(self) -> bool:
@@ -384,8 +356,10 @@ class ParkingEnv(gym.Env):
         """The views at the current pose, rendered by ``sim`` (None when ``renders`` is False).
 
         Returns:
-            The frame of the env's cameras (and BEV), or None.
+            The frame of the env's cameras (and BEV), with a scenario's actors drawn in, or None.
         """
+        if self.episode is not None:
+            return self.episode.frame()
         return self.sim.render(self.state.pose, self.cameras, self.bev, self.scale) if self.renders else None
 
     def observe(self, frame: Frame | None) -> dict[str, np.ndarray]:
@@ -397,15 +371,7 @@ class ParkingEnv(gym.Env):
         Returns:
             The observation dict (see ``reset``).
         """
-        s = self.state
-        obs: dict[str, np.ndarray] = {"state": np.array([s.v, s.steer, *self.slot_in_ego_frame()], np.float32)}
-        if self.privileged:
-            obs["pose"] = np.array(s.pose, np.float32)
-        if frame is not None:
-            obs.update(frame.images)
-            if frame.bev is not None:   # exactly when self.bev asked for one
-                obs["bev"] = frame.bev
-        return obs
+        return observation(self.state, self.slot, self.privileged, frame)
 
     # --- top view ------------------------------------------------------------------------
     def _to_px(self, xy: np.ndarray) -> np.ndarray:
@@ -432,7 +398,7 @@ class ParkingEnv(gym.Env):
         return img
 
     def render(self) -> np.ndarray | None:
-        """RGB top view of the garage: target slot in green, the ego footprint in orange with its heading.
+        """RGB top view of the garage: target slot in green, a scenario's actors in red, the ego in orange.
 
         Returns:
             uint8 ``[H, W, 3]`` at 16 px/m over the garage floor, or None unless ``render_mode="rgb_array"``.
@@ -445,6 +411,8 @@ class ParkingEnv(gym.Env):
             self._background = self._static_top_view()
         img = self._background.copy()
         cv2.polylines(img, [self._to_px(np.asarray(self.slot["corners"]))], True, (40, 220, 60), 2, cv2.LINE_AA)
+        for actor in (self.episode.world.polygons() if self.episode is not None else ()):
+            cv2.fillPoly(img, [self._to_px(actor)], (220, 50, 50), cv2.LINE_AA)
         body = self._to_px(footprint(self.state.pose, self.vehicle))
         cv2.fillPoly(img, [body], (255, 140, 0), cv2.LINE_AA)
         centre = self._to_px(car_centre(self.state.pose, self.vehicle))

@@ -22,6 +22,8 @@ from .frames import Frame, RequestError, npz_bytes_bound
 if TYPE_CHECKING:
     import torch
 
+    from .render.actors import Actor
+
 __all__ = ["LocalSim", "MIN_IMAGE_SIDE", "SUBSETS_KEPT", "RESPONSES_KEPT"]
 
 MIN_IMAGE_SIDE = 4
@@ -246,7 +248,7 @@ class LocalSim:
                 "dropped": dict(b.dropped)}
 
     def render(self, pose: Sequence[float], cameras: Sequence[str] | None = None, bev: bool = False,
-               scale: float = 1.0, depth: bool = False) -> Frame:
+               scale: float = 1.0, depth: bool = False, actors: Sequence[Actor] | None = None) -> Frame:
         """Render ``cameras`` (all when None; the BEV needs them all, so they are all rendered then) at ``pose``.
 
         Args:
@@ -255,6 +257,7 @@ class LocalSim:
             bev: also return the BEV (IPM of all cameras).
             scale: image size relative to the rig's cameras.
             depth: also return depth maps.
+            actors: Gaussian actors drawn with the scene (``parksim.render.render``'s ``actors``).
 
         Returns:
             The frame: uint8 ``[H, W, 3]`` images through the bundle's camera response (``response``), float32
@@ -264,10 +267,11 @@ class LocalSim:
         Raises:
             RequestError: as ``check``.
         """
-        return self.render_batch([pose], cameras, bev, scale, depth)[0]
+        return self.render_batch([pose], cameras, bev, scale, depth, actors)[0]
 
     def render_batch(self, poses: Sequence[Sequence[float]], cameras: Sequence[str] | None = None,
-                     bev: bool = False, scale: float = 1.0, depth: bool = False) -> list[Frame]:
+                     bev: bool = False, scale: float = 1.0, depth: bool = False,
+                     actors: Sequence[Actor] | None = None) -> list[Frame]:
         """``render`` at several poses, together where they share a scene.
 
         The poses that share a scene (all of them without visibility cells, those of one cell with them) are
@@ -280,6 +284,7 @@ class LocalSim:
             bev: as ``render``.
             scale: as ``render``.
             depth: as ``render``.
+            actors: as ``render``, the same at every pose.
 
         Returns:
             B frames as ``render`` gives, each equal to ``render`` at its pose; each frame's ``timings`` are the
@@ -306,7 +311,7 @@ class LocalSim:
             response = self.response(scale)
             for scene, members in groups.values():
                 rendered = render_batch(scene, self.bundle.rig, [list(poses[i]) for i in members], cameras=needed,
-                                        scale=scale, method=self.bundle.projection)
+                                        scale=scale, method=self.bundle.projection, actors=actors)
                 for i, res in zip(members, rendered):
                     if response is not None:
                         res.images = {n: response(image, n) for n, image in res.images.items()}

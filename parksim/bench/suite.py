@@ -99,6 +99,7 @@ SUITES: dict[str, str] = {
     "batch": "batch:BatchSuite",
     "env": "env:EnvSuite",
     "hardening": "hardening:HardeningSuite",
+    "actors": "actors:ActorsSuite",
 }
 """Suite name -> ``module:Class`` under ``parksim.bench.suites``."""
 

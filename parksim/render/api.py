@@ -24,6 +24,7 @@ from ..gaussians import GaussianScene
 from ..geometry import as_pose, invert_transform
 from ..ipm import IPM
 from ..rig import Rig, RigCamera
+from .actors import Actor, joined
 from .device_memory import check_device_memory, render_bytes
 from .project_device import device_supported, project_views_device
 from .project_fast import FusedUTConfig, fused_supported, project_views_fused
@@ -150,21 +151,20 @@ def _fast_path(scene: GaussianScene, pose: Tensor | Sequence[float], cameras: Se
 
 
 def _device_path(scene: GaussianScene, cams: Sequence[RigCamera], method: str, projector: str) -> bool:
-    """Whether the device kernels project this render: asked for, or "auto" on a CUDA scene (UT, built-in lenses).
+    """Whether the device kernels project this render: asked for, or "auto" on a CUDA scene (built-in lenses).
 
     Returns:
         True to take ``_device_views``.
 
     Raises:
-        ValueError: "device" asked for with EWA or a lens the kernels do not serve.
+        ValueError: "device" asked for with a lens the kernels do not serve.
     """
     if projector == "auto" and scene.means.device.type != "cuda":
         return False
-    served = method == "ut" and all(device_supported(cam.model) for cam in cams)
+    served = all(device_supported(cam.model) for cam in cams)
     if projector == "device" and not served:
         kinds = sorted({type(cam.model).__name__ for cam in cams if not device_supported(cam.model)})
-        raise ValueError(f"render: projector='device' needs method='ut' (got {method!r}) and built-in lenses "
-                         f"(not {kinds})")
+        raise ValueError(f"render: projector='device' needs built-in lenses with constant intrinsics (not {kinds})")
     return served
 
 
@@ -252,8 +252,8 @@ def _render_camera(scene: GaussianScene, cam: RigCamera, T_world_camera: Tensor,
 
 def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], cameras: Sequence[str] | None = None,
            bev: bool = False, scale: float = 1.0, backend: str = "auto", bg: Sequence[float] = (0.0, 0.0, 0.0),
-           method: str = "ut", ut_params: UTParams | None = None, cull: bool = True, projector: str = "auto"
-           ) -> RenderResult:
+           method: str = "ut", ut_params: UTParams | None = None, cull: bool = True, projector: str = "auto",
+           actors: Sequence[Actor] | None = None) -> RenderResult:
     """Render ``cameras`` of the rig with the vehicle at ``pose``, and optionally the BEV.
 
     Differentiable in the scene's tensors (and in a tensor pose) with a differentiable backend. On a CUDA scene
@@ -275,6 +275,9 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
         ut_params: unscented-transform parameters (default ``UTParams()``).
         cull: False projects every Gaussian into every camera (only to measure what culling saves).
         projector: one of ``PROJECTORS``: "auto", or "device" to run the device kernels on any device.
+        actors: Gaussian actors (``parksim.render.actors.Actor``: an asset at a pose) rendered with the scene in
+            the same pass, so they hide and are hidden by it in every view, the BEV and depth; None or empty
+            renders the scene alone, exactly as without the argument.
 
     Returns:
         ``RenderResult``: per camera name an image ``(H, W, 3)`` in [0, 1], alpha ``(H, W)`` and depth
@@ -284,16 +287,18 @@ def render(scene: GaussianScene, rig: Rig, pose: Tensor | Sequence[float], camer
     Raises:
         KeyError: a camera name the rig does not have.
         ValueError: ``scale`` not positive, a bad ``backend`` / ``method`` / ``projector``, or "device" asked of
-            a render it cannot serve (EWA, OCam lenses).
+            a render it cannot serve (a lens model of one's own, intrinsics that need a gradient).
         DeviceMemoryError: on a GPU, the render would not fit its memory (``parksim.render.device_memory``).
     """
-    return render_batch(scene, rig, [pose], cameras, bev, scale, backend, bg, method, ut_params, cull, projector)[0]
+    return render_batch(scene, rig, [pose], cameras, bev, scale, backend, bg, method, ut_params, cull, projector,
+                        actors)[0]
 
 
 def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequence[float]],
                  cameras: Sequence[str] | None = None, bev: bool = False, scale: float = 1.0, backend: str = "auto",
                  bg: Sequence[float] = (0.0, 0.0, 0.0), method: str = "ut", ut_params: UTParams | None = None,
-                 cull: bool = True, projector: str = "auto") -> list[RenderResult]:
+                 cull: bool = True, projector: str = "auto", actors: Sequence[Actor] | None = None
+                 ) -> list[RenderResult]:
     """``render`` at B poses at once: B x C views projected in one pass and composited together.
 
     On a CUDA scene the B x C views take one launch of the device kernels and one gsplat call, and the B BEVs one
@@ -313,6 +318,7 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
         ut_params: as ``render``.
         cull: as ``render``.
         projector: as ``render``.
+        actors: as ``render``, the same at every pose of the batch.
 
     Returns:
         B ``RenderResult``s, in ``poses``' order.
@@ -322,6 +328,9 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
         ValueError: as ``render``, or no pose.
         DeviceMemoryError: on a GPU, the render would not fit its memory (``parksim.render.device_memory``).
     """
+    if actors:   # the scene and the actors' Gaussians as one scene (the scene's rows staged, not copied per frame)
+        with joined(scene, actors) as both:
+            return render_batch(both, rig, poses, cameras, bev, scale, backend, bg, method, ut_params, cull, projector)
     names = tuple(cameras) if cameras is not None else tuple(rig.names)
     unknown = [n for n in names if n not in rig.cameras]
     if unknown:
@@ -330,6 +339,8 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
         raise ValueError(f"render: scale must be positive, got {scale}")
     if projector not in PROJECTORS:
         raise ValueError(f"render: projector must be one of {PROJECTORS}, got {projector!r}")
+    if method not in ("ut", "ewa"):
+        raise ValueError(f"render: method must be 'ut' or 'ewa', got {method!r}")
     if not len(poses):
         raise ValueError("render_batch: no pose")
     view = _rig_view(rig, float(scale), names)
@@ -348,7 +359,8 @@ def render_batch(scene: GaussianScene, rig: Rig, poses: Sequence[Tensor | Sequen
         check_device_memory(device, render_bytes(len(scene), len(cams),
                                                  max(c.model.width * c.model.height for c in cams)))
         params = ut_params or UTParams()
-        cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull) for c in cams]
+        cfgs = [fused_config(params, NEAR_M, FAR_M, float(max(c.model.width, c.model.height)), cull, method == "ewa")
+                for c in cams]
         views = _device_views(scene, cams, T_world_cameras, cfgs, lenses, background, backend)
     elif all(_fast_path(scene, pose, cams, method, backend) for pose in poses):
         params = ut_params or UTParams()
