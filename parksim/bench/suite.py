@@ -89,6 +89,7 @@ SUITES: dict[str, str] = {
     "compact": "compact:CompactSuite",
     "import": "imports:ImportSuite",
     "pose-refine": "pose_refine:PoseRefineSuite",
+    "real": "real:RealSuite",
     "synth": "synth:SynthSuite",
     "detectors": "detectors:DetectorsSuite",
     "planner": "planner:PlannerSuite",
