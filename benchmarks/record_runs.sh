@@ -26,3 +26,10 @@ for suite in server-memory soak-server; do
   $BIN/parksim bench "$suite" --quiet
 done
 $BIN/parksim bench report
+
+# 2026-11-28 (issues [16] and [17]): the real-recording experiment (fixed schedule, see the suite's docstring), the
+# actors' render overhead on 2e5 Gaussians, and the planner suite with the Hybrid A* planner beside the geometric one.
+$BIN/parksim bench real --quiet
+$BIN/parksim bench actors --quiet
+$BIN/parksim bench planner --planners geometric,hybrid --quiet
+$BIN/parksim bench report

@@ -305,6 +305,31 @@ def _record_and_import(clean: Path, work: Path, options: RealOptions, seed: int
     return imported, evs, report
 
 
+def _input_psnr(clean: Path, work: Path, evs: dict[tuple[int, str], float]) -> dict[str, float]:
+    """What the recording's training images themselves hold, before any training: mean PSNR over the training views
+    of the decoded recording to the images that were encoded (``codec``: what mp4v loses), and of the decoded
+    recording with its applied ``2^EV`` divided out to the clean images (``exposure_undone``: what a perfect
+    per-image exposure correction could start from, codec and clipping included); over eval's scene masks.
+
+    Returns:
+        ``codec`` and ``exposure_undone`` in dB.
+    """
+    import torch
+
+    from ...data import DatasetReader
+    from ...recon.masks import scene_mask
+    from ...recon.metrics import psnr
+
+    clean_r, exposed_r, decoded_r = (DatasetReader(p) for p in (clean, work / "exposed", work / "recording"))
+    rig = clean_r.rig
+    masks = {c: scene_mask(rig.cameras[c], rig.bev) for c in rig.names}   # what eval scores
+    views = [(f, c) for f in clean_r.split["train"] for c in rig.names]
+    codec = [psnr(decoded_r.image(c, f), exposed_r.image(c, f), masks[c]) for f, c in views]
+    undone = [psnr(torch.clamp(decoded_r.image(c, f) * 2.0 ** -evs.get((f, c), 0.0), 0.0, 1.0),
+                   clean_r.image(c, f), masks[c]) for f, c in views]
+    return {"codec": sum(codec) / len(codec), "exposure_undone": sum(undone) / len(undone)}
+
+
 def _train_and_score(run: Run, data: Path, clean: Path, options: RealOptions, work: Path) -> dict[str, Any]:
     """Reconstruct ``data`` with ``run``'s config and score the bundle on ``clean``'s test frames.
 
@@ -357,7 +382,7 @@ class RealSuite(Suite):
                                      **_train_and_score(run, recording if run.recording else clean, clean, options,
                                                         work)}
                 bar.update(1)
-        numbers = {**import_numbers(report), "wall_s": import_s}
+        numbers = {**import_numbers(report), "wall_s": import_s, "inputs": _input_psnr(clean, work, evs)}
         gap = results["clean"]["psnr"] - results[TARGET]["psnr"]
         cameras = sorted({c for _, c in evs})
         data = {"dataset": str(clean), "runs": results, "import": numbers,
@@ -393,7 +418,11 @@ def _figures(results: dict[str, dict[str, Any]], numbers: dict[str, Any], option
                numbers["largest_rotation_correction"], "1"),
         Figure(f"import of the recording: frames dropped ({at})", numbers["dropped"], "frames"),
         Figure(f"import of the recording: SfM points from the known poses ({at})", sfm["points"], "points"),
-        Figure(f"import of the recording: SfM mean reprojection error ({at})", sfm["mean_reprojection_px"], "px")]
+        Figure(f"import of the recording: SfM mean reprojection error ({at})", sfm["mean_reprojection_px"], "px"),
+        Figure(f"the recording's training views: PSNR of the decoded mp4v frames to the frames encoded ({at})",
+               numbers["inputs"]["codec"], "dB", better="higher"),
+        Figure(f"the recording's training views with the applied exposure divided out: PSNR to the clean views "
+               f"({at})", numbers["inputs"]["exposure_undone"], "dB", better="higher")]
     return figures
 
 
