@@ -10,9 +10,10 @@ import pytest
 
 MODULES = ["parksim.camera.base", "parksim.camera.models", "parksim.geometry", "parksim.gaussians",
            "parksim.render.rasterize", "parksim.ipm", "parksim.data.layout", "parksim.frames", "parksim.env",
-           "parksim.vehicle", "parksim.planners.geometric", "parksim.recon.config"]
+           "parksim.vehicle", "parksim.planners.geometric", "parksim.recon.config", "parksim.scenarios.task"]
 """Modules whose docstrings carry examples: ``CameraModel.project``/``unproject``, ``rasterize``, ``IPM``, poses,
-``pixel_grid``, the lens models, the npz format, the vehicle's collision test, Dubins paths, configs."""
+``pixel_grid``, the lens models, the npz format, the vehicle's collision test, Dubins paths, configs, the parking
+task's heading error."""
 
 
 @pytest.mark.parametrize("name", MODULES)

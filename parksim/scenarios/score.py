@@ -18,14 +18,12 @@ import numpy as np
 
 from ..vehicle import VehicleParams, car_centre
 from .shapes import box_polygon, nearest_distance, overlap_matrix, overlaps, polygon_distance
-from .task import heading_error, slot_pose
+from .task import heading_error, is_parked, slot_pose
 
-__all__ = ["EpisodeLog", "Scorecard", "score_episode", "aggregate", "MOVING_SPEED", "STOPPED_SPEED"]
+__all__ = ["EpisodeLog", "Scorecard", "score_episode", "aggregate", "MOVING_SPEED"]
 
 MOVING_SPEED = 0.01
 """Speeds of at most this (m/s) are standing still when direction changes are counted."""
-STOPPED_SPEED = 0.1
-"""Parked needs the final speed below this (m/s), as the env's success."""
 
 
 @dataclass(frozen=True)
@@ -169,8 +167,10 @@ def score_episode(log: EpisodeLog, vehicle: VehicleParams = VehicleParams(), pos
     actor_count, actor_first = _onsets(actor_hit, log.t)
     centre, slot_yaw = slot_pose({"corners": log.slot})
     distance = float(np.linalg.norm(car_centre(log.poses[-1], vehicle) - centre))
-    heading = math.degrees(heading_error(float(log.poses[-1, 2]), slot_yaw))
-    parked = distance < position_tolerance and heading < heading_tolerance and abs(log.speeds[-1]) < STOPPED_SPEED
+    heading_rad = heading_error(float(log.poses[-1, 2]), slot_yaw)
+    heading = math.degrees(heading_rad)
+    parked = is_parked(distance, heading_rad, float(log.speeds[-1]), position_tolerance,
+                       math.radians(heading_tolerance))
     mid_times = 0.5 * (log.t[:-1] + log.t[1:])             # each control acts from t[k] to t[k + 1]
     jerk = np.abs(np.diff(log.controls[:, 0])) / np.diff(mid_times)
     return Scorecard(
