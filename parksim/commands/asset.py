@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from .argtypes import integer
+from .bundle import add_placement_arguments, read_transform
 
 __all__ = ["add_parser", "run"]
 
@@ -53,11 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                        "after it: put the object's floor point at the origin, facing +x); its box "
                                        "spans the 0.5th to 99.5th percentile of the means.")
     ply.add_argument("ply", type=Path, help="the 3DGS PLY")
-    ply.add_argument("--frame", choices=["parksim", "opencv", "colmap", "opengl"], default="parksim",
-                     help="the PLY's axes: parksim x forward, y left, z up; opencv and colmap x right, y down, "
-                          "z forward; opengl x right, y up, z backward")
-    ply.add_argument("--transform", nargs="+", metavar="T",
-                     help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major")
+    add_placement_arguments(ply, "object")
     ply.add_argument("--name", help="the asset's name (default: the PLY's file name without .ply)")
     for mode in (bake, crop, ply):
         mode.add_argument("-o", "--output", type=Path, required=True, help="asset folder to write")
@@ -92,7 +89,6 @@ def run(args: argparse.Namespace) -> int:
     """Check OUTPUT, make the asset (``parksim.actor_sources``), write it (``save_asset``), print a summary."""
     from ..actor_asset import save_asset
     from ..actor_sources import asset_from_ply, bake, crop_asset
-    from .bundle import read_transform
     from .outputs import check_output_folder
 
     color = _numbers(args.color, "--color", 3) if args.mode == "bake" and args.color else None

@@ -24,18 +24,24 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     ply.add_argument("ply", type=Path, help="the 3DGS PLY (graphdeco point_cloud.ply, a gsplat or splatfacto export)")
     ply.add_argument("--rig", type=Path, required=True, help="rig.json/.yaml, or a dataset folder (its rig.json)")
     ply.add_argument("-o", "--output", type=Path, required=True, help="bundle folder to write")
-    ply.add_argument("--frame", choices=["parksim", "opencv", "colmap", "opengl"], default="parksim",
-                     help="the PLY world's axes: parksim x forward, y left, z up; opencv and colmap x right, "
-                          "y down, z forward; opengl x right, y up, z backward")
-    ply.add_argument("--transform", nargs="+", metavar="T",
-                     help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major "
-                          "(a rotation within 1e-3 of one, as printed with 6 decimals, is projected to it)")
+    add_placement_arguments(ply, "world")
     ply.add_argument("--dataparser-transforms", type=Path, metavar="JSON",
                      help="nerfstudio's dataparser_transforms.json of the run that trained the PLY: undone first, "
                           "so --frame describes the world nerfstudio was given")
     ply.add_argument("--map", type=Path, help="map.json (or a dataset folder's) in the same world frame")
     ply.add_argument("--overwrite", action="store_true", help="replace OUTPUT if it exists")
     return p
+
+
+def add_placement_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--frame`` and ``--transform``, which place a third-party 3DGS PLY in ParkSim's axes (``read_transform``
+    parses the second); ``what`` names what the PLY holds ("world", "object")."""
+    parser.add_argument("--frame", choices=["parksim", "opencv", "colmap", "opengl"], default="parksim",
+                        help=f"the PLY {what}'s axes: parksim x forward, y left, z up; opencv and colmap x right, "
+                             "y down, z forward; opengl x right, y up, z backward")
+    parser.add_argument("--transform", nargs="+", metavar="T",
+                        help="4x4 similarity applied after --frame: a .json/.txt/.npy file or 16 numbers, row-major "
+                             "(a rotation within 1e-3 of one, as printed with 6 decimals, is projected to it)")
 
 
 def _numbers(text: str) -> Any:
