@@ -57,11 +57,8 @@ def _device_lens(camera: CameraModel) -> np.ndarray:
         return _lens(camera)
     ss, series, rho_hi = camera.radial_polynomials()
     ss_np = np.zeros(0) if ss is None else ss.numpy()
-    head = np.array([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), camera.theta_max,
-                     camera.rho_max, float(camera.q(torch.zeros((), dtype=torch.float64), camera.k.detach())),
-                     0.0, 0.0, 0.0, 0.0, np.cos(camera.theta_max), np.sin(camera.theta_max), float(camera.d),
-                     float(camera.e), rho_hi, len(ss_np), len(series)], dtype=np.float64)
-    return np.concatenate([head, ss_np, series.numpy()])
+    ocam = np.array([float(camera.d), float(camera.e), rho_hi, len(ss_np), len(series)], dtype=np.float64)
+    return np.concatenate([_lens(camera), ocam, ss_np, series.numpy()])
 
 
 def _stacked_lenses(cameras: Sequence[CameraModel]) -> np.ndarray:

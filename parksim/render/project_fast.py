@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import CameraModel, OpenCVFisheye, Pinhole, RadialPolyFisheye
+from ..camera import CameraModel, OCamFisheye, OpenCVFisheye, Pinhole, RadialPolyFisheye
 from . import _project_kernels as pk
 from ._views_kernels import project_views
 from .scratch import Allocator, fresh
@@ -65,9 +65,11 @@ def fused_supported(camera: CameraModel, means: Tensor, quats: Tensor, log_scale
 
 
 def _lens(camera: CameraModel) -> np.ndarray:
-    """The kernels' ``lens`` array: fx, fy, cx, cy, theta_max, rho_max, q(0), k1..k4, cos and sin of theta_max."""
+    """The kernels' ``lens`` array: fx, fy, cx, cy, theta_max, rho_max, q(0), k1..k4, cos and sin of theta_max
+    (k1..k4 zeros for an OCam lens, whose polynomials follow in the device kernels' slots)."""
     k = np.zeros(4)
-    k[:camera.k.numel()] = camera.k.detach().numpy()
+    if not isinstance(camera, OCamFisheye):
+        k[:camera.k.numel()] = camera.k.detach().numpy()
     q0 = float(camera.q(torch.zeros((), dtype=torch.float64), camera.k.detach()))
     return np.array([float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
                      camera.theta_max, camera.rho_max, q0, *k, math.cos(camera.theta_max), math.sin(camera.theta_max)],
