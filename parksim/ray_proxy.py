@@ -1,9 +1,11 @@
 """Ray Serve's HTTP proxy answers a request whose replica died under it with the server's 503 JSON, not 500 text.
 
 When a replica process dies while it holds a request (killed, out of memory, its node lost), Serve's proxy gets a
-``RayActorError`` for it and sends nothing, so uvicorn answers ``500 Internal Server Error`` in text/plain: a client
-cannot tell that from a bug, and does not retry. :class:`ReplicaLost` wraps the proxy's ASGI app and answers such a
-request as the app answers a full render queue: 503, ``Retry-After``, ``{"detail": ...}``. Serve loads it in every
+``RayActorError`` for it and stops sending: before the reply's first message, uvicorn answers ``500 Internal Server
+Error`` in text/plain; after it, the client gets headers and a body cut short. A client can tell neither from a bug,
+and does not retry. :class:`ReplicaLost` wraps the proxy's ASGI app, holds each reply until its last message (up to
+:data:`HOLD_BYTES`), and answers a request whose reply did not complete as the app answers a full render queue: 503,
+``Retry-After``, ``{"detail": ...}``. Serve loads it in every
 proxy process from ``RAY_SERVE_HTTP_PROXY_CALLBACK_IMPORT_PATH`` (set by :func:`proxy_env`); this module imports only
 Starlette, so the proxy does not load the renderer.
 """
@@ -16,34 +18,51 @@ from starlette.middleware import Middleware
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-__all__ = ["ReplicaLost", "middlewares", "proxy_env", "RETRY_AFTER_ENV"]
+__all__ = ["ReplicaLost", "middlewares", "proxy_env", "HOLD_BYTES", "RETRY_AFTER_ENV"]
 
+HOLD_BYTES = 64 << 20
+"""Reply bytes the proxy holds back until the reply completes (a render batch larger than this streams through)."""
 RETRY_AFTER_ENV = "PARKSIM_RAY_RETRY_AFTER_S"
 """Environment variable of the proxy process: the ``Retry-After`` seconds (the replicas' ``retry_after_s``)."""
 
 
 class ReplicaLost:
-    """ASGI middleware: an HTTP request the wrapped app returned from without starting a response gets 503 JSON
-    with ``Retry-After: retry_after_s``. Serve's proxy returns so only when the request failed in Ray (its replica
-    died, or Serve could not run it): a replica's own error replies, 408, 429 and 503 start a response and pass
-    through untouched."""
+    """ASGI middleware: an HTTP reply is passed on once complete; a request the wrapped app returned from before its
+    reply completed gets 503 JSON with ``Retry-After: retry_after_s`` instead. Serve's proxy returns so only when the
+    request failed in Ray (its replica died, or Serve could not run it): a replica's own error replies, 408, 429 and
+    503 complete and pass through untouched.
 
-    def __init__(self, app: ASGIApp, retry_after_s: int = 1) -> None:
-        self.app, self.retry_after_s = app, retry_after_s
+    A reply is held until its last body message, so a replica that dies between the reply's headers and its body
+    (a window of Serve's message stream) still gets the 503, not a cut body. Once a reply holds more than
+    ``hold_bytes`` it is passed on as it comes, and a failure after that can only cut it short.
+    """
+
+    def __init__(self, app: ASGIApp, retry_after_s: int = 1, hold_bytes: int = HOLD_BYTES) -> None:
+        self.app, self.retry_after_s, self.hold_bytes = app, retry_after_s, hold_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
+        held: list[Message] = []
+        size, passed, complete = 0, False, False
 
-        async def watch(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
+        async def hold(message: Message) -> None:
+            nonlocal size, passed, complete
+            complete = complete or (message["type"] == "http.response.body" and not message.get("more_body", False))
+            if passed:
+                await send(message)
+                return
+            held.append(message)
+            size += len(message.get("body", b""))
+            if complete or size > self.hold_bytes:
+                passed = True
+                for m in held:
+                    await send(m)
+                held.clear()
 
-        await self.app(scope, receive, watch)
-        if not started:   # uvicorn would answer 500 text/plain (and ignores this send if the client has gone)
+        await self.app(scope, receive, hold)
+        if not passed:   # uvicorn would answer 500 text/plain (and ignores this send if the client has gone)
             detail = (f"the Ray Serve replica serving this request stopped before it answered (Serve restarts it): "
                       f"retry after {self.retry_after_s} s")
             reply = JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": str(self.retry_after_s)})

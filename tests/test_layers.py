@@ -28,9 +28,9 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("model", ("camera", "rig", "gaussians", "data", "calib", "bundle", "actor_asset")),
     ("render", ("render", "ipm", "_ipm_kernels", "sh_rotation", "ply_3dgs")),
     ("sources", ("synth", "importers", "actor_sources")),
-    ("recon", ("recon", "compact", "sim")),
+    ("recon", ("recon", "compact", "sim", "scenarios")),
     ("serve", ("server", "client", "ray_proxy")),
-    ("drive", ("env", "vector_env", "ray_sim", "planners", "scenarios")),
+    ("drive", ("env", "vector_env", "ray_sim", "planners")),
     ("bench", ("bench",)),
     ("commands", ("commands",)),
     ("cli", ("cli",)),
@@ -41,7 +41,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
 - model: the data types every stage passes on: cameras and rigs, Gaussians, datasets on disk, scene bundles.
 - render: what turns Gaussians into pixels (the rasterizer, IPM to a BEV, SH rotation, 3DGS PLY import).
 - sources: what makes datasets: the synthetic garage generator and the importers of recordings and other formats.
-- recon: what consumes datasets and bundles: training and evaluation, compaction, the simulator core.
+- recon: what consumes datasets and bundles: training and evaluation, compaction, the simulator core and the
+  scenarios it runs in closed loop (so the server can host episodes).
 - serve: the HTTP service over the simulator, and its client.
 - drive: the gym environments and the planners that drive in them.
 - bench: the benchmark harness, which may measure any of the above.

@@ -184,23 +184,39 @@ def test_a_killed_replica_answers_its_requests_503_json(served):
         _ok(httpx.get(f"{base}/render", params={"pose": POSE, "scale": 0.25}, headers=AUTH, timeout=120))
 
 
-def test_replica_lost_leaves_started_replies_alone():
-    """The proxy middleware rewrites only a request the proxy returned from in silence; an app's own error reply
-    (here a 500 JSON) passes through as it was."""
+def test_replica_lost_rewrites_only_replies_that_did_not_complete():
+    """The proxy middleware answers 503 JSON for a request the proxy returned from in silence or with its reply cut
+    after the headers (the replica died between Serve's messages); an app's own error reply (here a 500 JSON) passes
+    through as it was; a reply larger than the hold streams through as it comes."""
+    start = {"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"6")]}
+
     async def silent(scope, receive, send):   # what Serve's proxy does after a RayActorError
         return None
+
+    async def cut(scope, receive, send):   # the replica died after its headers
+        await send(start)
+        await send({"type": "http.response.body", "body": b"abc", "more_body": True})
 
     async def own_error(scope, receive, send):
         await send({"type": "http.response.start", "status": 500, "headers": [(b"content-type", b"application/json")]})
         await send({"type": "http.response.body", "body": b'{"detail": "x"}'})
 
-    lost = TestClient(ReplicaLost(silent, retry_after_s=3)).get("/render")
-    assert (lost.status_code, lost.headers["retry-after"], lost.headers["content-type"]) == (503, "3",
-                                                                                            "application/json")
-    assert lost.json() == {"detail": "the Ray Serve replica serving this request stopped before it answered (Serve "
-                                     "restarts it): retry after 3 s"}
+    async def streamed(scope, receive, send):
+        await send(start)
+        await send({"type": "http.response.body", "body": b"abc", "more_body": True})
+        await send({"type": "http.response.body", "body": b"def"})
+
+    for app in (silent, cut):
+        lost = TestClient(ReplicaLost(app, retry_after_s=3)).get("/render")
+        assert (lost.status_code, lost.headers["retry-after"], lost.headers["content-type"]) == (503, "3",
+                                                                                                "application/json")
+        assert lost.json() == {"detail": "the Ray Serve replica serving this request stopped before it answered "
+                                         "(Serve restarts it): retry after 3 s"}
     kept = TestClient(ReplicaLost(own_error)).get("/render")
     assert (kept.status_code, kept.json(), "retry-after" in kept.headers) == (500, {"detail": "x"}, False)
+    for hold in (1, 2, 100):
+        whole = TestClient(ReplicaLost(streamed, hold_bytes=hold)).get("/render")
+        assert (whole.status_code, whole.content) == (200, b"abcdef")
 
 
 def _replica_pids() -> list[int]:
