@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from parksim.bench.record import Figure, Machine, Record, read_record, records_in, write_record
-from parksim.bench.report import render_dashboard
+from parksim.bench.report import render_dashboard, render_details, write_dashboard
 from parksim.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,8 +21,10 @@ def test_committed_dashboard_regenerates_byte_identically(tmp_path):
     copy = tmp_path / "benchmarks"
     shutil.copytree(BENCH / "results", copy / "results")
     assert main(["bench", "report", "--results", str(copy / "results"), "-o", str(copy / "RESULTS.md")]) == 0
-    assert (copy / "RESULTS.md").read_bytes() == (BENCH / "RESULTS.md").read_bytes(), \
-        "benchmarks/RESULTS.md differs from what the records give: run `parksim bench report` and commit it"
+    for page in sorted(p.name for p in copy.glob("RESULTS*.md")) + sorted(p.name for p in BENCH.glob("RESULTS*.md")):
+        assert (BENCH / page).is_file() and (copy / page).is_file() and \
+            (copy / page).read_bytes() == (BENCH / page).read_bytes(), \
+            f"benchmarks/{page} differs from what the records give: run `parksim bench report` and commit it"
 
 
 def test_every_committed_record_loads_and_every_dashboard_link_resolves():
@@ -85,3 +87,19 @@ def test_goals_in_the_figures_unit_are_checked_and_others_shown_as_written(tmp_p
     assert "<= 10 ms: met" in rows["fast"] and "<= 10 ms (target): not met" in rows["slow"]
     assert "| 0: met |" in rows["none failed"] and ">= 28 dB: not met" in rows["psnr"]
     assert "| <= 1.5x the other |" in rows["relative"]
+
+
+def test_a_records_details_become_a_linked_page_of_the_latest_one(tmp_path):
+    results = tmp_path / "results"
+    for date, table in (("2026-01-01T00:00:00+00:00", "| old |"), ("2026-02-01T00:00:00+00:00", "| new |")):
+        rec = _record(date, 5.0)
+        rec.details = f"## table\n\n{table}\n"
+        write_record(rec, results)
+    write_record(_record("2026-03-01T00:00:00+00:00", 4.0), results)   # a later run without details keeps the page
+    pages = render_details(results, tmp_path)
+    assert list(pages) == ["RESULTS_demo.md"]
+    assert "| new |" in pages["RESULTS_demo.md"] and "| old |" not in pages["RESULTS_demo.md"]
+    assert "Full tables of the latest run that wrote them: [RESULTS_demo.md](RESULTS_demo.md)" in \
+        render_dashboard(results, tmp_path)
+    write_dashboard(results, tmp_path / "RESULTS.md")
+    assert (tmp_path / "RESULTS_demo.md").read_text() == pages["RESULTS_demo.md"]

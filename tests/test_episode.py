@@ -196,3 +196,18 @@ def test_without_a_scenario_the_env_is_as_before(sim):
         before = after
         if terminated:
             break
+
+
+def test_the_hybrid_scenario_planner_yields_to_the_walker_and_parks(sim, parked, easy):
+    """The same walker, against ``scenarios run``'s hybrid planner: it plans around the walker's predicted footprints
+    and stands while the walker is on the path just ahead, so it parks without touching it (where the blind run
+    above hits it), and its run repeats exactly."""
+    from parksim.planners.scenario_planners import make_planner
+    from parksim.planners.scenario_runs import run_scenarios
+
+    scenario, _ = _walker(parked, easy)
+    first, again = (run_scenarios([scenario], sim.info()["map"], None, "hybrid")[0] for _ in range(2))
+    assert first.outcome == "parked", first.card
+    assert first.card.actor_collisions == 0 and first.card.min_clearance_actors > 0
+    assert first.card.to_dict() == again.card.to_dict()
+    assert make_planner("hybrid").privileged and not make_planner("hybrid").bev

@@ -91,6 +91,7 @@ class Record:
     plot: str | None = None
     note: str | None = None
     legacy: bool = False
+    details: str | None = None
     schema: int = SCHEMA
 
     def to_json(self) -> str:

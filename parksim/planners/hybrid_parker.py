@@ -208,6 +208,26 @@ class HybridAStarParker:
             v_ref = feedforward = 0.0   # at a cusp or the start: turn the wheels first
         return to_action(self.gain * (v_ref - v) + feedforward, steer, self.vehicle)
 
+    def upcoming(self, metres: float) -> np.ndarray:
+        """The poses of the path still ahead, from the car's place on it, over about ``metres`` of arc length
+        (across cusps: the segments after the current one follow).
+
+        Args:
+            metres: how far ahead (m).
+
+        Returns:
+            ``[k, 3]`` poses ``(x, y, yaw)`` in driving order; ``[0, 3]`` without a path.
+        """
+        out, left = [], metres
+        for i, seg in enumerate(self._segments[self._segment:]):
+            start = self._index if i == 0 else 0
+            stop = int(np.searchsorted(seg.arc, seg.arc[start] + left, side="right"))
+            out.append(seg.poses[start:max(stop, start + 1)])
+            left -= seg.arc[min(stop, len(seg.arc)) - 1] - seg.arc[start]
+            if left <= 0:
+                break
+        return np.concatenate(out) if out else np.zeros((0, 3))
+
     def _progress(self, x: float, y: float) -> tuple[_Segment, float]:
         """Advance the nearest-pose index on the current segment; the segment and the metres left to its end."""
         seg = self._segments[self._segment]

@@ -5,9 +5,10 @@ tracks the ego there by dead reckoning: the commanded actions integrated with th
 (``parksim.vehicle.step``). Every ``every`` steps it takes a BEV, detects slots (``parksim.recon.detectors``), turns
 them into ground rectangles in the odometry frame (entrance from the two marking points, depth by slot kind)
 and picks the one nearest the target the env names in the ego frame (``state[2:4]``, read only to say which
-slot: the geometry parked into is the detected one). It replans with ``GeometricParker.plan`` when the
-estimate moves, treating the other detected slots' inner parts as obstacles (occupancy is not detected),
-until the car reaches the entrance; the last plan is then followed in.
+slot: the geometry parked into is the detected one). It replans when the estimate moves, treating the other
+detected slots' inner parts as obstacles (occupancy is not detected), until the car reaches the entrance; the last
+plan is then followed in. Each plan asks ``GeometricParker`` (forward, one smooth turn) first and, where it finds no
+path, ``HybridAStarParker`` (forward and reverse, cusps): the path found is tracked by the parker that found it.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from ..env import ParkingEnv, heading_error, slot_pose, to_controls
 from ..rig import BEVSpec
 from ..vehicle import Obstacles, VehicleParams, VehicleState, step
 from .geometric import GeometricParker
+from .hybrid_astar import HybridAStarConfig
+from .hybrid_parker import HybridAStarParker
 
 __all__ = ["SlotDepths", "detected_slots", "PerceptionParker", "run_perception_episode"]
 
@@ -94,10 +97,12 @@ class PerceptionParker:
     keep_m: float = 3.0            # m of path left below which it is no longer replanned
     detour_m: float = 2.0          # m a replanned path may be longer than the rest of the current one
     depths: SlotDepths = SlotDepths()
-    parker: GeometricParker | None = None   # default: one for ``vehicle``
+    parkers: tuple[GeometricParker | HybridAStarParker, ...] = ()   # tried in order; default: geometric, hybrid
 
     def __post_init__(self) -> None:
-        self.tracker = self.parker or GeometricParker(self.vehicle)
+        self.planners = self.parkers or (GeometricParker(self.vehicle), HybridAStarParker(
+            self.vehicle, config=HybridAStarConfig(max_nodes=5000, max_seconds=math.inf)))
+        self.tracker: GeometricParker | HybridAStarParker = self.planners[0]
         self.state = VehicleState(0.0, 0.0, 0.0)
         self.goal: np.ndarray | None = None          # target corners in the odometry frame
         self.perceived = False                       # whether ``goal`` came from a detection
@@ -131,7 +136,7 @@ class PerceptionParker:
         if path is None:
             return math.inf
         near = int(np.argmin(np.hypot(path[:, 0] - self.state.x, path[:, 1] - self.state.y)))
-        return float(np.hypot(*np.diff(path[near:, :2], axis=0).T).sum())
+        return _length(path[near:])
 
     def _moved(self, goal: np.ndarray) -> bool:
         """Whether ``goal`` parks elsewhere than the current goal: centre beyond ``replan_tol`` or axis 0.03 rad."""
@@ -157,22 +162,32 @@ class PerceptionParker:
             return
         remaining = self._remaining()
         if self._moved(goal) and remaining > self.keep_m:
-            others = [_inner_box(c, 0.6) for c in slots if c is not goal]
-            path = self.tracker.plan(self.state.pose, {"corners": goal.tolist()}, Obstacles(others))
-            if path is None:
-                path = self.tracker.plan(self.state.pose, {"corners": goal.tolist()}, Obstacles([]))
-            if path is None or len(path) * self.tracker.step > remaining + self.detour_m:
+            others = Obstacles([_inner_box(c, 0.6) for c in slots if c is not goal])
+            found = self._plan({"corners": goal.tolist()}, others) or self._plan({"corners": goal.tolist()},
+                                                                                Obstacles([]))
+            if found is None or _length(found[1]) > remaining + self.detour_m:
                 return
-            self.goal = goal
-            self.tracker.follow(path)
+            self.goal, self.tracker = goal, found[0]
+            self.tracker.follow(found[1])
         self.perceived = self.perceived or bool(near)
+
+    def _plan(self, slot: dict[str, Any], obstacles: Obstacles
+              ) -> tuple[GeometricParker | HybridAStarParker, np.ndarray] | None:
+        """The first of ``planners`` that finds a path from the dead-reckoned pose into ``slot``, and its path."""
+        for parker in self.planners:
+            path = parker.plan(self.state.pose, slot, obstacles)
+            if path is not None:
+                return parker, path
+        return None
 
     # --- control -------------------------------------------------------------------------
     def start(self, obs: dict[str, np.ndarray]) -> None:
         """Begin an episode at the odometry origin with the first observation (it must hold the BEV)."""
         self.state = VehicleState(0.0, 0.0, 0.0, float(obs["state"][0]), float(obs["state"][1]))
         self.goal, self.perceived, self.detections, self._steps = None, False, 0, 0
-        self.tracker.path = None
+        self.tracker = self.planners[0]
+        for parker in self.planners:
+            parker.path = None
         self.update(obs)
 
     @property
@@ -186,11 +201,16 @@ class PerceptionParker:
             self.update(obs)
         if self.tracker.path is None:
             return None
-        speed = np.array([self.state.v], np.float32)
-        action = self.tracker.act({"pose": np.array(self.state.pose, np.float32), "state": speed})
+        motion = np.array([self.state.v, self.state.steer], np.float32)
+        action = self.tracker.act({"pose": np.array(self.state.pose, np.float32), "state": motion})
         self.state = step(self.state, *to_controls(action, self.vehicle), self.vehicle)
         self._steps += 1
         return action
+
+
+def _length(path: np.ndarray) -> float:
+    """A path's length in metres."""
+    return float(np.hypot(*np.diff(path[:, :2], axis=0).T).sum())
 
 
 def run_perception_episode(env: ParkingEnv, seed: int, planner: PerceptionParker,

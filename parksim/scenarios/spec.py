@@ -10,7 +10,7 @@ and the value (as training configs, ``parksim.recon.config``). docs/scenarios.md
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -449,13 +449,16 @@ class ScenarioSet:
     scenarios: tuple[Scenario, ...]
 
 
-def write_set(folder: str | Path, scenario_set: ScenarioSet, overwrite: bool = False) -> Path:
+def write_set(folder: str | Path, scenario_set: ScenarioSet, overwrite: bool = False,
+              extra: Callable[[Path], object] | None = None) -> Path:
     """Write a set: one ``NAME.yaml`` per scenario and ``index.yaml``, into a folder that appears whole.
 
     Args:
         folder: the set's folder.
         scenario_set: the set.
         overwrite: replace an existing folder.
+        extra: writes more files into the folder (its temp folder, given as the argument) before it appears, such
+            as thumbnails.
 
     Returns:
         The folder.
@@ -477,6 +480,8 @@ def write_set(folder: str | Path, scenario_set: ScenarioSet, overwrite: bool = F
         for s in scenario_set.scenarios:
             (tmp / f"{s.name}.yaml").write_text(_yaml(s))
         (tmp / INDEX_NAME).write_text(_yaml(index))
+        if extra is not None:
+            extra(tmp)
     return folder
 
 

@@ -32,7 +32,7 @@ from ..common import Timing, progress, set_threads
 from ..record import Figure
 from ..suite import Context, Outcome, Suite
 
-__all__ = ["PlannerSuite", "PlannerOptions", "PLANNERS"]
+__all__ = ["PlannerSuite", "PlannerOptions", "PLANNERS", "train_detector"]
 
 PLANNERS = {"geometric": "privileged geometric planner (world pose + map)",
             "perception": "perception planner (BEV detector + dead reckoning)",
@@ -112,22 +112,24 @@ def _timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[dict[str, Any], float, f
     return result, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def _detector(bundle: Path, folder: Path, options: PlannerOptions, quiet: bool) -> tuple[Any, dict[str, Any]]:
-    """Render the training BEVs and train the detector (each reused when ``folder`` has it from the same options);
-    the model and what making it cost here (wall and process-CPU seconds; zero when reused)."""
+def train_detector(bundle: Path, folder: Path, *, bevs: int, steps: int, input_size: int, seed: int, scale: float,
+                   quiet: bool) -> tuple[Any, dict[str, Any]]:
+    """Render ``bevs`` training BEVs of ``bundle`` at fisheye scale ``scale`` and train a DMPR detector ``steps``
+    steps from ``seed`` (each reused when ``folder`` has it from the same options); the model and what making it
+    cost here (wall and process-CPU seconds; zero when reused)."""
     from ...planners.slot_data import write_training_bevs
     from ...recon.detectors import load_detector
     from ...recon.detectors.train import TrainOptions
     from .detectors import train_stages
 
     wall, cpu = time.perf_counter(), time.process_time()
-    bevs = folder / f"bevs_{options.train_bevs}_seed{options.train_seed}_scale{options.scale:g}"
-    if not bevs.is_dir():
-        write_training_bevs(bundle, bevs, options.train_bevs, seed=options.train_seed, scale=options.scale)
-    model = folder / f"dmpr_{options.input_size}px_on_{bevs.name}"
-    train = TrainOptions(arch="dmpr", input_size=options.input_size, lr=3e-3, seed=options.train_seed, threads=1)
-    meta = train_stages([bevs], model, [options.train_steps], train, progress=not quiet)
-    cost = {"model": str(model), "bevs": str(bevs), "train_seconds": meta["total_train_seconds"],
+    data = folder / f"bevs_{bevs}_seed{seed}_scale{scale:g}"
+    if not data.is_dir():
+        write_training_bevs(bundle, data, bevs, seed=seed, scale=scale)
+    model = folder / f"dmpr_{input_size}px_on_{data.name}"
+    train = TrainOptions(arch="dmpr", input_size=input_size, lr=3e-3, seed=seed, threads=1)
+    meta = train_stages([data], model, [steps], train, progress=not quiet)
+    cost = {"model": str(model), "bevs": str(data), "train_seconds": meta["total_train_seconds"],
             "made_here": {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}}
     return load_detector(model), cost
 
@@ -172,7 +174,9 @@ class PlannerSuite(Suite):
             privileged = gym.wrappers.TimeLimit(ParkingEnv(bundle=bundle, cameras=[], privileged=True),
                                                MAX_EPISODE_STEPS)
         if "perception" in options.planners:
-            detector, data["detector"] = _detector(bundle, folder, options, context.quiet)
+            detector, data["detector"] = train_detector(
+                bundle, folder, bevs=options.train_bevs, steps=options.train_steps, input_size=options.input_size,
+                seed=options.train_seed, scale=options.scale, quiet=context.quiet)
             set_threads(options.threads)   # the detector trained on one thread
             perception = ParkingEnv(bundle=bundle, cameras=[], bev=True, scale=options.scale)
             assert isinstance(perception.sim, LocalSim)   # made from a bundle
