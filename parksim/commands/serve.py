@@ -47,6 +47,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "(default auto: for scenes on a GPU, where a batch costs little more than one render)")
     p.add_argument("--gather-window-ms", type=number(0), metavar="MS",
                    help="how long a request waits for others to render with (default 2)")
+    p.add_argument("--max-episodes", type=integer(1),
+                   help="live scenario episodes (POST /episodes) at once; more: 503 (default 16)")
+    p.add_argument("--episode-ttl", type=number(0, open_low=True), dest="episode_ttl_s", metavar="SECONDS",
+                   help="an episode untouched this long is dropped (default 300)")
     p.add_argument("--device", default="auto",
                    help=DEVICE_HELP + "; with --ray each replica resolves it on its node (cuda needs --replica-gpus)")
     ray = p.add_argument_group("Ray Serve (needs parksim[ray]; docs/ray.md)",
@@ -90,7 +94,8 @@ def run(args: argparse.Namespace) -> int:
                                  max_scale=args.max_scale, max_batch=args.max_batch,
                                  max_reply_bytes=_mib(args.max_reply_mib),
                                  reply_budget_bytes=_mib(args.reply_budget_mib), device=args.device,
-                                 gather=args.gather, gather_window_ms=args.gather_window_ms)
+                                 gather=args.gather, gather_window_ms=args.gather_window_ms,
+                                 max_episodes=args.max_episodes, episode_ttl_s=args.episode_ttl_s)
     if args.ray:
         serve_ray(args.scenes, settings, args.host, args.port, args.replicas or 1, args.autoscale,
                   args.replica_cpus or 1, args.address, strict=args.strict, replica_gpus=args.replica_gpus or 0.0)

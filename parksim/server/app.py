@@ -4,8 +4,8 @@ Errors are answered with ``{"detail": "..."}`` saying what is wrong and what is 
 400 a body that is not parseable JSON (malformed, not UTF-8, nested too deeply, an integer too long) or a key
 in the query string, 422 bad request values (in a body that parsed), 404 unknown scene or route, 401 missing key,
 421 a ``Host`` the server does not answer to (``Settings.allowed_hosts``), 413 body or reply too large (or a
-render larger than the GPU's memory), 503 (with Retry-After) when the render queue, the reply budget or the GPU's
-free memory is full.
+render larger than the GPU's memory), 409 a step of an episode that is over, 503 (with Retry-After) when the render
+queue, the reply budget, the episode store or the GPU's free memory is full.
 """
 
 from __future__ import annotations
@@ -25,11 +25,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from parksim.bundle import Bundle
 from parksim.frames import RequestError
 from parksim.render.device_memory import DeviceMemoryError
+from parksim.scenarios.spec import ScenarioError
 from parksim.sim import LocalSim
 
 from .auth import host_name
 from .budget import BudgetFull, ReplyBudget, ReplyTooLarge
 from .docs import install_docs
+from .episode_routes import episode_router
+from .episodes import EpisodeError, EpisodeStore
 from .gather import Gatherer
 from .metrics import Metrics
 from .pool import PoolBusy, RenderPool
@@ -98,8 +101,13 @@ def _install_errors(app: FastAPI) -> None:
         return _error(400, syntax) if syntax else _error(422, _validation_message(exc))
 
     @app.exception_handler(RequestError)
-    async def _bad_request(_: Request, exc: RequestError) -> JSONResponse:
+    @app.exception_handler(ScenarioError)
+    async def _bad_request(_: Request, exc: RequestError | ScenarioError) -> JSONResponse:
         return _error(422, str(exc))
+
+    @app.exception_handler(EpisodeError)
+    async def _episode(_: Request, exc: EpisodeError) -> JSONResponse:
+        return _error(exc.status, str(exc), exc.headers)
 
     @app.exception_handler(UnknownScene)
     async def _unknown_scene(_: Request, exc: UnknownScene) -> JSONResponse:
@@ -182,8 +190,9 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
 
     Returns:
         A FastAPI app: ``GET/POST /render`` (npz of uint8 (H, W, 3) views, optional float32 (H, W) depth,
-        the (h, w, 3) BEV), ``GET /render/{view}.{png,jpg}``, ``/scenes``, ``/healthz``, ``/metrics``, the viewer
-        at ``/`` and offline OpenAPI docs at ``/docs``; run it with uvicorn (``parksim serve`` does).
+        the (h, w, 3) BEV), ``GET /render/{view}.{png,jpg}``, the episode API under ``/episodes``, ``/scenes``,
+        ``/healthz``, ``/metrics``, the viewer at ``/`` and offline OpenAPI docs at ``/docs``; run it with uvicorn
+        (``parksim serve`` does).
 
     Raises:
         BundleError: no scene to serve (every bundle refused), a missing scenes folder, or, with ``strict`` or
@@ -204,10 +213,12 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     app.state.settings, app.state.registry, app.state.pool, app.state.budget, app.state.metrics = (
         settings, registry, pool, budget, metrics)
     app.state.gatherer = gatherer
+    app.state.episodes = EpisodeStore(settings.max_episodes, settings.episode_ttl_s)
     _install_errors(app)
     _install_middleware(app, settings, metrics)
     app.include_router(router)
     app.include_router(protected)
+    app.include_router(episode_router)
     app.mount("/viewer", StaticFiles(directory=VIEWER_DIR), name="viewer")
     install_docs(app)
     return app

@@ -8,14 +8,15 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from .budget import ReplyBudget
+from .episodes import EpisodeStore
 from .metrics import Metrics
 from .pool import RenderPool
 from .replies import Renderer
 from .scenes import SceneRegistry
 from .settings import Settings
 
-__all__ = ["get_settings", "get_registry", "get_pool", "get_budget", "get_metrics", "get_renderer", "SettingsDep",
-           "RegistryDep", "PoolDep", "BudgetDep", "MetricsDep", "RendererDep"]
+__all__ = ["get_settings", "get_registry", "get_pool", "get_budget", "get_metrics", "get_renderer", "get_episodes",
+           "SettingsDep", "RegistryDep", "PoolDep", "BudgetDep", "MetricsDep", "RendererDep", "EpisodesDep"]
 
 
 def get_settings(request: Request) -> Settings:
@@ -38,11 +39,16 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+def get_episodes(request: Request) -> EpisodeStore:
+    return request.app.state.episodes
+
+
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 RegistryDep = Annotated[SceneRegistry, Depends(get_registry)]
 PoolDep = Annotated[RenderPool, Depends(get_pool)]
 BudgetDep = Annotated[ReplyBudget, Depends(get_budget)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+EpisodesDep = Annotated[EpisodeStore, Depends(get_episodes)]
 
 
 def get_renderer(request: Request, pool: PoolDep, budget: BudgetDep, metrics: MetricsDep, settings: SettingsDep

@@ -7,8 +7,9 @@ validates and hands bytes back.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -18,8 +19,11 @@ from parksim.sim import LocalSim
 from .budget import ReplyTooLarge
 from .pool import RenderPool
 from .scenes import SceneRegistry, check_pose
-from .schemas import Pose, RenderMeta
+from .schemas import PlacedActor, Pose, RenderMeta
 from .settings import Settings
+
+if TYPE_CHECKING:
+    from parksim.render.actors import Actor
 
 __all__ = ["RenderJob", "Reply", "MEDIA_TYPES", "render_together"]
 
@@ -48,7 +52,7 @@ def encode_image(image: np.ndarray, fmt: Literal["png", "jpeg"], jpeg_quality: i
 
 @dataclass
 class RenderJob:
-    """A validated request: which scene, poses, views and encoding, and its reply size (bytes, upper bound)."""
+    """A validated request: which scene, poses, views, actors and encoding, and its reply size (bytes, upper bound)."""
 
     sim: LocalSim
     poses: list[Pose]
@@ -59,11 +63,13 @@ class RenderJob:
     fmt: Literal["npz", "png", "jpeg"]
     batch: bool
     reply_bytes: int
+    actors: Sequence[PlacedActor] = ()
 
     @classmethod
     def build(cls, registry: SceneRegistry, settings: Settings, scene: str | None, poses: list[Pose],
               cameras: list[str] | None, bev: bool, scale: float, depth: bool,
-              fmt: Literal["npz", "png", "jpeg"] = "npz", batch: bool = False) -> RenderJob:
+              fmt: Literal["npz", "png", "jpeg"] = "npz", batch: bool = False,
+              actors: Sequence[PlacedActor] = ()) -> RenderJob:
         """Check everything that can be checked before rendering; ``RequestError`` says what is wrong,
         ``ReplyTooLarge`` when the reply would exceed ``settings.max_reply_bytes``.
 
@@ -92,12 +98,21 @@ class RenderJob:
                                 f"scale {scale:g}), over this server's limit of {settings.max_reply_bytes} bytes "
                                 f"({settings.max_reply_bytes / 2**20:.1f} MiB) per request: ask for fewer poses or "
                                 f"views, a smaller scale, or no depth")
-        return cls(sim, poses, names, bev, scale, depth, fmt, batch, size)
+        return cls(sim, poses, names, bev, scale, depth, fmt, batch, size, actors)
+
+    def _placed(self) -> list[Actor] | None:
+        """The actors with their built-in assets (baked on first use, so on a pool thread), or None."""
+        if not self.actors:
+            return None
+        from parksim.render.actors import Actor
+        from parksim.scenarios.episode import load_actor_asset
+
+        return [Actor(load_actor_asset(a.asset), _pose_values(a.pose)) for a in self.actors]
 
     def _run(self, jpeg_quality: int) -> tuple[bytes, dict[str, float], list[Frame]]:
         """Render every pose (together: ``LocalSim.render_batch``) and encode (runs on a pool thread)."""
         frames = self.sim.render_batch([_pose_values(p) for p in self.poses], self.cameras, self.bev, self.scale,
-                                       self.depth)
+                                       self.depth, self._placed())
         body, timings = self.encode(frames, jpeg_quality)
         return body, timings, frames
 

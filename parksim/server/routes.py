@@ -6,6 +6,7 @@ can answer.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -50,11 +51,14 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
 _NPZ_HELP = f"npz (uncompressed numpy.savez):\n\n```\n{NPZ_LAYOUT}\n```"
 
 
-def _errors(*codes: int, too_large: str = _WHY[413]) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI ``responses`` for the error ``codes`` a route can answer (``too_large`` says what 413 means there)."""
+def _errors(*codes: int, too_large: str = _WHY[413], why: Mapping[int, str] | None = None
+            ) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` for the error ``codes`` a route can answer (``too_large`` says what 413 means there,
+    ``why`` what other codes mean there)."""
+    texts = {**_WHY, 413: too_large, **(why or {})}
     out: dict[int | str, dict[str, Any]] = {}
     for code in codes:
-        out[code] = {"model": ErrorMessage, "description": too_large if code == 413 else _WHY[code]}
+        out[code] = {"model": ErrorMessage, "description": texts[code]}
         if code == 503:
             out[code]["headers"] = {"Retry-After": {"description": "seconds to wait before retrying",
                                                     "schema": {"type": "integer"}}}
@@ -124,7 +128,7 @@ async def render_get(q: Annotated[RenderQuery, Query()], registry: RegistryDep, 
 async def render_post(body: RenderBatchRequest, registry: RegistryDep, settings: SettingsDep,
                       renderer: RendererDep) -> Response:
     return await renderer.respond(RenderJob.build(registry, settings, body.scene, body.poses, body.cameras, body.bev,
-                                                  body.scale, body.depth, batch=True))
+                                                  body.scale, body.depth, batch=True, actors=body.actors))
 
 
 @protected.get("/render/{view}.{ext}", response_class=Response, summary="one view as an image: a camera name or 'bev'",

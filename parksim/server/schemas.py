@@ -8,9 +8,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, FiniteFloat, model_validator
 
+from parksim.scenarios.spec import BUILTIN_BOXES
+
 __all__ = ["Pose", "parse_number", "parse_pose", "parse_cameras", "RenderQuery", "ViewQuery", "RenderBatchRequest",
            "RenderMeta", "SceneSummary", "RefusedScene", "SceneList", "SceneInfo", "Health", "ErrorMessage",
-           "POSE_HELP"]
+           "POSE_HELP", "builtin_asset", "PlacedActor", "EpisodeRequest", "StepRequest", "Observation",
+           "EpisodeCreated", "StepReply", "EpisodeResult"]
 
 POSE_HELP = ("ego pose T_world_vehicle as 'x,y,yaw' (metres, radians; z = roll = pitch = 0) or "
              "'x,y,z,roll,pitch,yaw'; yaw about world z, rotation Rz(yaw) Ry(pitch) Rx(roll)")
@@ -123,6 +126,35 @@ class ViewQuery(BaseModel):
     scale: float = _SCALE
 
 
+def builtin_asset(name: str, where: str = "asset") -> str:
+    """``name`` when it is a built-in actor asset; over HTTP no other is accepted, since any other names a file.
+
+    Args:
+        name: an actor's ``asset``.
+        where: what to call it in the error (the key path).
+
+    Returns:
+        ``name``.
+
+    Raises:
+        ValueError: not a built-in asset (one line naming the accepted ones).
+    """
+    if name not in BUILTIN_BOXES:
+        raise ValueError(f"{where}: {name!r} is not a built-in asset; over HTTP only {', '.join(BUILTIN_BOXES)} are "
+                         f"accepted (the server reads no file a request names)")
+    return name
+
+
+class PlacedActor(BaseModel):
+    """A built-in actor asset standing at a world pose, drawn into every view of a ``POST /render``."""
+
+    model_config = ConfigDict(extra="forbid")
+    asset: Annotated[str, AfterValidator(builtin_asset)] = Field(
+        ..., json_schema_extra={"enum": list(BUILTIN_BOXES)}, description="a built-in asset")
+    pose: Pose = Field(..., description="T_world_actor as [x, y, yaw], [x, y, z, roll, pitch, yaw] or an object "
+                                        "(metres, radians)")
+
+
 class RenderBatchRequest(BaseModel):
     """Body of ``POST /render``: several poses rendered with the same options, answered as one npz."""
 
@@ -135,6 +167,81 @@ class RenderBatchRequest(BaseModel):
     bev: bool = Field(False, description="also render the bird's-eye view")
     scale: float = _SCALE
     depth: bool = _DEPTH
+    actors: list[PlacedActor] = Field(default_factory=list, max_length=64, description="actors drawn with the "
+                                      "scene at every pose (in the views, the BEV and depth)")
+
+
+_Action = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+"""A JSON number, finite (strict: no string, no boolean)."""
+
+
+class EpisodeRequest(BaseModel):
+    """Body of ``POST /episodes``: a scenario and what each observation holds."""
+
+    model_config = ConfigDict(extra="forbid")
+    scenario: dict[str, Any] | str = Field(..., description="the scenario: its fields as an object (as in its "
+                                           "YAML file), or the text of a scenario file (YAML or JSON; no "
+                                           "anchors/aliases). Its scene is a loaded scene id (GET /scenes); actor "
+                                           "assets are built-in names only")
+    cameras: list[str] | None = Field(None, max_length=64, description="views in each observation (default: all "
+                                      "of the rig; []: none)")
+    bev: bool = Field(False, description="add the bird's-eye view to each observation")
+    scale: float = Field(0.25, description="resolution factor of the views (the server's limits are in "
+                                           "GET /healthz)")
+    privileged: bool = Field(False, description="add the world pose [x, y, yaw] to each observation and info")
+    image_format: Literal["png", "jpeg"] = Field("png", description="encoding of the views (base64 in the JSON): "
+                                                 "png is lossless, jpeg smaller")
+    seed: int | None = Field(None, ge=0, description="replaces the scenario's seed (its start region and actor "
+                             "ranges are drawn from it)")
+
+
+class StepRequest(BaseModel):
+    """Body of ``POST /episodes/{id}/step``."""
+
+    model_config = ConfigDict(extra="forbid")
+    action: list[_Action] = Field(..., min_length=2, max_length=2, description="[acceleration, steering], "
+                                 "normalised to [-1, 1] (clipped)")
+
+
+class Observation(BaseModel):
+    """What the ego sees after a reset or a step."""
+
+    state: list[float] = Field(description="[v (m/s), steer (rad), slot_x, slot_y (m), slot_yaw (rad)]: the ego's "
+                                           "speed and steering, the target slot in the ego frame")
+    pose: list[float] | None = Field(None, description="[x, y, yaw] in the world, when privileged")
+    images: dict[str, str] = Field(description="camera name -> base64 PNG/JPEG (uint8 RGB)")
+    bev: str | None = Field(None, description="base64 PNG/JPEG of the bird's-eye view, when asked")
+
+
+_INFO = ("slot, distance, heading_error, collision, is_success, speed, actor_collision, truncated, time (and pose "
+         "when privileged); the scorecard once done")
+
+
+class EpisodeCreated(BaseModel):
+    """``POST /episodes``: the episode's id and its first observation."""
+
+    id: str = Field(description="the episode's id in the other /episodes routes")
+    observation: Observation
+    info: dict[str, Any] = Field(description=_INFO + "; scenario (its name)")
+
+
+class StepReply(BaseModel):
+    """``POST /episodes/{id}/step``: as gymnasium's ``step`` (``done`` = the episode is over)."""
+
+    observation: Observation
+    reward: float
+    done: bool = Field(description="parked, touched something, or out of time: the episode is over")
+    truncated: bool = Field(description="the scenario's time limit ended it")
+    info: dict[str, Any] = Field(description=_INFO)
+
+
+class EpisodeResult(BaseModel):
+    """``GET /episodes/{id}/result``: the scorecard so far (final once done; docs/scenarios.md defines it)."""
+
+    id: str
+    scenario: str
+    done: bool
+    scorecard: dict[str, Any]
 
 
 class RenderMeta(BaseModel):

@@ -60,7 +60,11 @@ class Settings(BaseModel):
                                  "(views x pixels x channels x poses, counted before rendering); larger: 413")
     reply_budget_bytes: int = Field(256 << 20, ge=1 << 16, description="reply bytes rendered or being sent at once, "
                                     "over all clients; a request that would exceed it: 503")
-    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of single-view replies")
+    jpeg_quality: int = Field(90, ge=1, le=100, description="JPEG quality of single-view replies and of episode "
+                              "observations sent as JPEG")
+    max_episodes: int = Field(16, ge=1, description="episodes (POST /episodes) held at once; one more: 503")
+    episode_ttl_s: float = Field(300.0, gt=0, description="an episode no request has touched for this long (s) is "
+                                 "dropped")
     api_key: str | None = Field(None, description="required as the X-API-Key header when set; not empty, no "
                                 "whitespace at either end (HTTP trims header values, so such a key could never match)")
     allowed_hosts: tuple[str, ...] | None = Field(None, description="Host header names (port ignored) the server "
