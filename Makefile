@@ -32,7 +32,7 @@ demo: $(STAMP)
 	$(BIN)/parksim demo -o out/demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -267,3 +267,13 @@ def test_post_render_draws_actors_as_local_sim_does(sim, easy, app):
     np.testing.assert_array_equal(drawn.images["front"], want.images["front"])
     np.testing.assert_array_equal(drawn.bev, want.bev)
     assert (drawn.images["front"] != bare.images["front"]).any(axis=-1).sum() > 50, "the car shows in front"
+
+
+def test_a_scene_named_by_a_sets_relative_path_is_the_loaded_scene_of_that_name(sim, easy):
+    """``parksim scenarios make`` names the scene by its path relative to the set: its last part picks the loaded
+    scene; a path to a scene that is not loaded is 404, as an unknown id."""
+    with TestClient(create_app(SceneRegistry([sim]), Settings())) as c:
+        made = c.post("/episodes", json={"scenario": _scenario(easy, scene=f"../../scenes/{sim.id}"), "cameras": []})
+        assert made.status_code == 201, made.text
+        other = c.post("/episodes", json={"scenario": _scenario(easy, scene="../../scenes/elsewhere"), "cameras": []})
+        assert other.status_code == 404 and "elsewhere" in other.json()["detail"]

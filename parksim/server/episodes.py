@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import PurePosixPath
 from typing import Any, Literal
 
 import numpy as np
@@ -41,7 +42,7 @@ from .schemas import EpisodeRequest, builtin_asset
 from .settings import Settings
 
 __all__ = ["EpisodeError", "UnknownEpisode", "EpisodeOver", "EpisodesFull", "LiveEpisode", "EpisodeStore",
-           "open_episode", "read_scenario"]
+           "open_episode", "read_scenario", "scene_id"]
 
 _JSON_OVERHEAD = 4096
 """Bytes of an observation reply besides its images (state, pose, info, scorecard, keys)."""
@@ -224,6 +225,22 @@ class LiveEpisode:
                            f"/episodes/{self.id}/result has its scorecard; POST /episodes starts another")
 
 
+def scene_id(scene: str, loaded: Sequence[str]) -> str:
+    """The loaded scene a scenario's ``scene`` names: the id itself, or a path whose last part is a loaded id (as
+    ``parksim scenarios make`` writes it, relative to its set). A request never names a server file: the path is
+    read only for its last part.
+
+    Args:
+        scene: ``Scenario.scene``.
+        loaded: the loaded scene ids.
+
+    Returns:
+        ``scene``, or its last path part when that is loaded and ``scene`` is not.
+    """
+    last = PurePosixPath(scene.replace("\\", "/")).name
+    return last if scene not in loaded and last in loaded else scene
+
+
 def open_episode(registry: SceneRegistry, settings: Settings, request: EpisodeRequest) -> LiveEpisode:
     """Check a ``POST /episodes`` body and make its episode (not yet started: ``LiveEpisode.first``).
 
@@ -245,7 +262,7 @@ def open_episode(registry: SceneRegistry, settings: Settings, request: EpisodeRe
         ReplyTooLarge: one observation would exceed ``max_reply_bytes``.
     """
     scenario = read_scenario(request.scenario)
-    sim = registry.get(scenario.scene)
+    sim = registry.get(scene_id(scenario.scene, registry.ids))
     if not sim.bundle.map or not sim.bundle.map.get("slots"):
         raise RequestError(f"scene {sim.id!r} has no slot map (map.json with slots): episodes need one")
     if not settings.min_scale <= request.scale <= settings.max_scale:
