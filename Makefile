@@ -14,7 +14,9 @@ API_MODULES := parksim/camera parksim/device.py parksim/rig.py parksim/geometry.
                parksim/render/rasterize/constants.py parksim/data parksim/bundle.py parksim/sim.py \
                parksim/client.py parksim/frames.py parksim/env.py parksim/vehicle.py parksim/planners/__init__.py \
                parksim/planners/geometric.py parksim/planners/hybrid_astar.py parksim/planners/hybrid_parker.py \
-               parksim/planners/reeds_shepp.py parksim/scenarios/task.py parksim/recon/reconstruct.py parksim/recon/trainer.py \
+               parksim/planners/reeds_shepp.py parksim/planners/scenario_planners.py \
+               parksim/planners/scenario_runs.py parksim/planners/scenario_report.py parksim/scenarios/task.py \
+               parksim/scenarios/make.py parksim/scenarios/pictures.py parksim/server/episodes.py parksim/recon/reconstruct.py parksim/recon/trainer.py \
                parksim/recon/config.py parksim/server/__init__.py parksim/server/app.py parksim/server/settings.py
 DOC_RULES   := D,DOC102,DOC201,DOC202,DOC402,DOC403,DOC501
 

@@ -49,11 +49,14 @@ class Outcome:
         figures: the dashboard's rows, one per target.
         data: everything else measured (tables, series), kept in the record as it is.
         plot: ``plot(png)`` draws the run's figure, or None.
+        details: Markdown too long for the dashboard's rows (a full table), which ``parksim bench report`` writes
+            as ``RESULTS_<suite>.md`` beside the dashboard and links from the suite's section; or None.
     """
 
     figures: list[Figure]
     data: dict[str, Any] = field(default_factory=dict)
     plot: Callable[[Path], None] | None = None
+    details: str | None = None
 
 
 class Suite(Plugin):
@@ -101,6 +104,7 @@ SUITES: dict[str, str] = {
     "env": "env:EnvSuite",
     "hardening": "hardening:HardeningSuite",
     "actors": "actors:ActorsSuite",
+    "scenarios": "scenarios:ScenariosSuite",
 }
 """Suite name -> ``module:Class`` under ``parksim.bench.suites``."""
 
@@ -159,5 +163,6 @@ def run_suite(name: str, options: Any, context: Context, results: Path, command:
                     figures=outcome.figures, options={**vars(options), "seed": context.seed,
                                                       "quick": context.quick},
                     load={"start": load_start, "end": [round(x, 2) for x in os.getloadavg()]},
-                    versions={**_versions(), **{k: str(v) for k, v in _threads().items()}}, data=outcome.data)
+                    versions={**_versions(), **{k: str(v) for k, v in _threads().items()}}, data=outcome.data,
+                    details=outcome.details)
     return write_record(record, results, outcome.plot)

@@ -20,7 +20,8 @@ __all__ = ["COMMANDS", "build_parser", "describe", "main"]
 
 # Order is the order shown in --help.
 COMMANDS = ["demo", "synth", "offpath", "import", "points", "export", "reconstruct", "batch", "eval", "colmap",
-            "detector", "render", "ipm", "serve", "bench", "compact", "bundle", "asset"]
+            "detector", "render", "ipm", "serve", "bench", "compact", "bundle", "asset",
+            "scenarios"]
 
 _MODULES = {"import": "imports"}
 """Commands whose module has another name (``import`` is a Python keyword)."""

@@ -209,8 +209,9 @@ class HybridAStarParker:
         return to_action(self.gain * (v_ref - v) + feedforward, steer, self.vehicle)
 
     def upcoming(self, metres: float) -> np.ndarray:
-        """The poses of the path still ahead, from the car's place on it, over about ``metres`` of arc length
-        (across cusps: the segments after the current one follow).
+        """The poses of the path still ahead over about ``metres`` of arc length.
+
+        They start at the car's place on the path and run across cusps (the segments after the current one follow).
 
         Args:
             metres: how far ahead (m).

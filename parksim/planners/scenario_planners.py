@@ -310,9 +310,12 @@ def make_planner(spec: str, vehicle: VehicleParams = VehicleParams(), detector: 
     if not (module and name):
         raise ValueError(f"unknown planner {spec!r}: choose {', '.join(PLANNERS)} or module:Class")
     try:
-        planner = getattr(importlib.import_module(module), name)()
+        cls = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as e:
         raise ValueError(f"planner {spec!r} cannot be loaded: {e}") from None
+    if not isinstance(cls, type):
+        raise ValueError(f"planner {spec!r} is not a class")
+    planner = cls()
     if not isinstance(planner, ScenarioPlanner):
         raise ValueError(f"planner {spec!r} lacks a ScenarioPlanner member (privileged, bev, status, start, act, "
                          "wants_view)")

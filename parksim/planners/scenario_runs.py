@@ -262,9 +262,8 @@ def run_set(path: str | Path, planner: str, *, scenes: str | Path | None = None,
     name = load_set(path).name if path.is_dir() else scenarios[0].name
     folder = path if path.is_dir() else path.parent
     check_planner(planner, detector)   # before any bundle is read
-    bundles = {s.scene: Path(bundle) if bundle is not None else resolve_scene(s.scene, folder,
-                                                                               None if scenes is None else Path(scenes))
-               for s in scenarios}
+    root = None if scenes is None else Path(scenes)
+    bundles = {s.scene: resolve_scene(s.scene if bundle is None else str(bundle), folder, root) for s in scenarios}
     maps = {scene: json.loads((b / "map.json").read_text()) for scene, b in bundles.items()}
     options: dict[str, Any] = {"detector": None if detector is None else str(Path(detector).resolve()),
                                "device": device, "scale": scale, "asset_root": str(folder.resolve())}

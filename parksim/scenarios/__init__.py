@@ -6,6 +6,7 @@ log, ``shapes`` holds the footprint geometry they share. docs/scenarios.md descr
 """
 
 from .behaviours import BEHAVIOURS, ActorState, Behaviour, make_behaviour
+from .make import make_set
 from .resolve import Setup, prepare
 from .score import EpisodeLog, Scorecard, aggregate, score_episode
 from .spec import (
@@ -25,4 +26,4 @@ from .world import Prediction, World, ego_actor
 __all__ = ["Scenario", "ActorSpec", "ScenarioError", "ScenarioSet", "load_scenario", "dump_scenario", "load_set",
            "write_set", "load_scenarios", "scenario_schema", "Setup", "prepare", "ActorState", "Behaviour",
            "BEHAVIOURS", "make_behaviour", "World", "Prediction", "ego_actor", "EpisodeLog", "Scorecard",
-           "score_episode", "aggregate"]
+           "score_episode", "aggregate", "make_set"]

@@ -226,9 +226,10 @@ class LiveEpisode:
 
 
 def scene_id(scene: str, loaded: Sequence[str]) -> str:
-    """The loaded scene a scenario's ``scene`` names: the id itself, or a path whose last part is a loaded id (as
-    ``parksim scenarios make`` writes it, relative to its set). A request never names a server file: the path is
-    read only for its last part.
+    """The loaded scene a scenario's ``scene`` names.
+
+    That is the id itself, or a path whose last part is a loaded id (as ``parksim scenarios make`` writes it,
+    relative to its set). A request never names a server file: the path is read only for its last part.
 
     Args:
         scene: ``Scenario.scene``.
