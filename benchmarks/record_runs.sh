@@ -33,3 +33,7 @@ $BIN/parksim bench real --quiet
 $BIN/parksim bench actors --quiet
 $BIN/parksim bench planner --planners geometric,hybrid --quiet
 $BIN/parksim bench report
+
+# 2026-11-28 (issue [17]): the scenario scorecards: a graded set of 30 per scene (scene1, worn, busy), every planner.
+$BIN/parksim bench scenarios --quiet
+$BIN/parksim bench report

@@ -4,7 +4,8 @@
 node of the cluster); ``BatchRenderVectorEnv`` steps every car in this process and renders all their poses at
 once: in one ``POST /render`` to ``parksim serve`` or its Ray Serve deployment, or, given a bundle, in one
 in-process ``LocalSim.render_batch`` (on a GPU: one kernel launch for every car's cameras). Both autoreset on the
-step after an episode ends (gymnasium's next-step mode) and truncate at ``max_episode_steps`` as ``TimeLimit`` does.
+step after an episode ends (gymnasium's next-step mode) and truncate at ``max_episode_steps`` as ``TimeLimit`` does,
+or at a scenario's time limit (``scenario=``: each sub-env draws its scenarios with its own seed).
 ``make_vector_env`` is the registration's ``vector_entry_point``: ``gym.make_vec("ParkSim-v0", num_envs=N, ...)``.
 """
 
@@ -119,6 +120,8 @@ class _ParkVectorEnv(VectorEnv, abc.ABC):
         terminated = np.array([o[2] for o in outcomes], bool)
         limit = self.max_episode_steps
         truncated = ~self._ended & (self._steps >= limit) if limit is not None else np.zeros(self.num_envs, bool)
+        out_of_time = np.array([bool(o[3].get("truncated", False)) for o in outcomes])   # a scenario's time limit
+        truncated |= out_of_time & ~terminated
         self._ended = terminated | truncated
         obs, infos = self._batch(outcomes)
         return obs, rewards, terminated, truncated, infos
@@ -161,7 +164,8 @@ class BatchRenderVectorEnv(_ParkVectorEnv):
     """``num_envs`` ``ParkingEnv``s in this process sharing one simulator: each step renders every pose at once,
     in one ``POST /render`` to ``server`` (``parksim serve`` or its Ray Serve deployment) or, with ``bundle``, in
     one ``LocalSim.render_batch`` on ``device``: in this process, or with ``render_actor`` in a Ray actor
-    (``RaySim``) reserving ``render_gpus`` GPUs, shared by every vector env that gives the same actor name."""
+    (``RaySim``) reserving ``render_gpus`` GPUs, shared by every vector env that gives the same actor name. With
+    ``scenario=`` each car's views are rendered on their own, with its scenario's actors drawn in."""
 
     def __init__(self, num_envs: int, server: str | None = None, scene: str | None = None,
                  api_key: str | None = None, max_episode_steps: int | None = None, bundle: Any = None,
@@ -193,6 +197,8 @@ class BatchRenderVectorEnv(_ParkVectorEnv):
         first = self.envs[0]
         if not first.renders:
             return [None] * self.num_envs
+        if first.scenarios:   # each car sees its own scenario's actors; a batch render draws one set at every pose
+            return [env.frame() for env in self.envs]
         return list(self.sim.render_batch([e.state.pose for e in self.envs], first.cameras, first.bev, first.scale))
 
     def _run(self, calls: Sequence[Call]) -> list[Outcome]:

@@ -163,3 +163,31 @@ def test_bad_vector_arguments_are_refused(bundle_dir):
         BatchRenderVectorEnv(2, server="http://127.0.0.1:9", bundle=bundle_dir)
     with pytest.raises(ValueError, match="cannot ship sim="):
         make_vector_env(2, sim=ParkingEnv(bundle=bundle_dir, cameras=[]).sim)
+
+
+def test_scenario_sub_envs_draw_their_actors_and_end_at_the_scenarios_time_limit(bundle_dir, tmp_path):
+    """backend="batch" with scenario=: each car's views are its own scenario's (actors drawn in, equal to a single
+    env's), and the scenario's time limit truncates a sub-env, which resets on the step after."""
+    import json
+
+    from parksim.scenarios import write_set
+    from parksim.scenarios.make import make_set
+
+    world_map = json.loads((bundle_dir / "map.json").read_text())
+    made = make_set(world_map, "tiny", 2, 0, difficulties=("hard",))
+    made = type(made)(made.name, tuple(s.model_copy(update={"time_limit": 0.3}) for s in made.scenarios))
+    write_set(tmp_path / "set", made)
+    kwargs = {"cameras": ["front"], "bev": True, "scale": 0.25, "scenario": str(tmp_path / "set")}
+    vec = BatchRenderVectorEnv(2, bundle=str(bundle_dir), device="cpu", **kwargs)
+    singles = [ParkingEnv(bundle=bundle_dir, **kwargs) for _ in range(2)]
+    obs, info = vec.reset(seed=SEED)
+    reference = [e.reset(seed=SEED + i) for i, e in enumerate(singles)]
+    _assert_same(obs, [o for o, _ in reference])
+    assert list(info["scenario"]) == [i["scenario"] for _, i in reference]
+    for step in range(1, 5):
+        obs, _, terminated, truncated, info = vec.step(np.zeros((2, 2), np.float32))
+        if step <= 3:
+            _assert_same(obs, [e.step(np.zeros(2))[0] for e in singles])
+        assert not terminated.any() and truncated.tolist() == [step == 3] * 2, step
+    assert info["time"].tolist() == [0.0, 0.0], "the step after the time limit reset both"
+    vec.close()
