@@ -247,6 +247,25 @@ def project_batch(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pt
         _project_loop(OCAM, lens, axis_eps, tiny, pts, uv, n, jac)
 
 
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+def project_pixels(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray, uv: np.ndarray,
+                   n: int) -> None:
+    """``project_batch`` without Jacobians, as a function of its own (not inlined into its callers).
+
+    The four lens loops are what takes longest to compile; compiled once here, they serve the inference and
+    the differentiable forward kernels alike (about a third of their first-use compile time), and calling them
+    once per chunk costs nothing measurable. The same fast-math flags as the chunk loops: the same bits.
+    """
+    project_batch(model, lens, axis_eps, tiny, pts, uv, n, False)
+
+
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+def project_pixels_jacobians(model: int, lens: np.ndarray, axis_eps: float, tiny: float, pts: np.ndarray,
+                             uv: np.ndarray, n: int) -> None:
+    """``project_batch`` with the Jacobian rows, on its own for the backward kernel (see ``project_pixels``)."""
+    project_batch(model, lens, axis_eps, tiny, pts, uv, n, True)
+
+
 @numba.njit(inline="always", cache=True)
 def _unit_quaternion(q: np.ndarray) -> tuple[float, float, float, float, float]:
     """``(w, x, y, z)`` normalised and the input norm; a zero quaternion acts as the identity (norm 0)."""
@@ -393,7 +412,7 @@ def _sigma_batch(xyz: np.ndarray, L: np.ndarray, zs: np.ndarray, m: int, pts: np
                 pts[d, p * m + i] = xyz[i, d] + (L[i, d, 0] * z0 + L[i, d, 1] * z1 + L[i, d, 2] * z2)
 
 
-@numba.njit(inline="always", cache=True)
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
 def footprints(model: int, lens: np.ndarray, opts: np.ndarray, m: int, xyz: np.ndarray, L: np.ndarray,
                sig: np.ndarray, z7: np.ndarray, wm7: np.ndarray, wc7: np.ndarray, z19: np.ndarray,
                wm19: np.ndarray, wc19: np.ndarray, pts: np.ndarray, uv: np.ndarray, uv19: np.ndarray,
@@ -403,11 +422,13 @@ def footprints(model: int, lens: np.ndarray, opts: np.ndarray, m: int, xyz: np.n
 
     Their 7-point sigma points go through the lens in one vectorised loop (``pts``, ``uv``: 7 m columns), the
     moments in another; the fifth-degree blend runs Gaussian by Gaussian (``_ut_blend``, ``uv19``, ``mom``).
+    A function of its own, called once per chunk: the inference and the differentiable forward kernels share one
+    compile of it, with their fast-math flags (the same bits as inlined).
     """
     wm = (wm7[0], wm7[1], wm7[2], wm7[3], wm7[4], wm7[5], wm7[6])   # tuples: constant point count, no aliasing
     wc = (wc7[0], wc7[1], wc7[2], wc7[3], wc7[4], wc7[5], wc7[6])
     _sigma_batch(xyz, L, z7, m, pts)
-    project_batch(model, lens, opts[AXIS_EPS], opts[TINY], pts, uv, N_UT * m, False)
+    project_pixels(model, lens, opts[AXIS_EPS], opts[TINY], pts, uv, N_UT * m)
     for i in range(m):
         foot[0, i], foot[1, i], foot[2, i], foot[3, i], foot[4, i] = _moments(uv[0], uv[1], i, m, wm, wc)
     for i in range(m):   # the fifth-degree blend, for the few Gaussians that need it
@@ -663,7 +684,7 @@ def _backward_range(start: int, stop: int, index: np.ndarray, means: np.ndarray,
         _load_row(index[i], means, quats, log_scales, rot, m, xyz, q, s, R, L, sig)
         m += 1
     _sigma_batch(xyz, L, z7, m, pts)
-    project_batch(model, lens, opts[AXIS_EPS], opts[TINY], pts, uvj, N_UT * m, True)
+    project_pixels_jacobians(model, lens, opts[AXIS_EPS], opts[TINY], pts, uvj, N_UT * m)
     for k in range(m):
         i, g = rows[k], index[rows[k]]
         x, y, z, sigma = xyz[k, 0], xyz[k, 1], xyz[k, 2], sig[k]
