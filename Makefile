@@ -1,6 +1,7 @@
 # The README's two commands: `make demo` (main job) and `make test` (the suite).
 # Both create .venv on first use; torch is pinned through constraints.txt.
 PY      ?= python3
+TEST_WORKERS ?= 2   # pytest-xdist processes; a test module stays in one (its Ray instance, its fixtures)
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
@@ -34,7 +35,7 @@ demo: $(STAMP)
 	$(BIN)/parksim demo -o out/demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q --durations=25
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

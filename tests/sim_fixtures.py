@@ -18,7 +18,7 @@ from typing import Any
 from parksim.bench.scenes import surface_bundle, surface_scene
 from parksim.gaussians import GaussianScene
 
-__all__ = ["make_bundle", "garage_scene", "running_server"]
+__all__ = ["make_bundle", "garage_scene", "running_server", "easy_scenario"]
 
 
 def garage_scene(preset: str = "tiny", n: int = 3000, seed: int = 0) -> tuple[GaussianScene, dict]:
@@ -55,3 +55,18 @@ def running_server(app: Any) -> Iterator[str]:
         server.should_exit = True
         thread.join(10)
         sock.close()
+
+
+def easy_scenario(sim: Any, seed: int, name: str = "easy", actors: tuple = ()) -> Any:
+    """A scenario on ``sim``'s scene (a ``LocalSim``): the env's random start of ``seed``, the slot Hybrid A* picks
+    from it as the target, and ``actors``."""
+    from parksim.env import ParkingEnv
+    from parksim.planners import HybridAStarParker
+    from parksim.scenarios import Scenario
+    from parksim.scenarios.spec import EgoStart
+
+    plain = ParkingEnv(sim=sim, cameras=[], privileged=True)
+    obs, _ = plain.reset(seed=seed)
+    start = tuple(float(v) for v in obs["pose"])
+    slot_id, _ = HybridAStarParker().choose_slot(start, plain.world_map)
+    return Scenario(name=name, scene=sim.id, ego=EgoStart(pose=start), target=slot_id, actors=actors)

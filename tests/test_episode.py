@@ -20,7 +20,7 @@ from parksim.scenarios.spec import EgoStart, PedestrianSpec, Region, TriggerSpec
 from parksim.scenarios.task import slot_pose
 from parksim.sim import LocalSim
 from parksim.vehicle import VehicleParams, car_centre
-from sim_fixtures import make_bundle
+from sim_fixtures import easy_scenario, make_bundle
 
 SEED = 2
 """A scene1 start from which Hybrid A* reverses all the way into its slot (tests/test_hybrid_astar.py)."""
@@ -39,11 +39,7 @@ def sim(bundle):
 @pytest.fixture(scope="module")
 def easy(sim):
     """The env's random start of ``SEED`` and the slot Hybrid A* picks from it, as a scenario."""
-    plain = ParkingEnv(sim=sim, cameras=[], privileged=True)
-    obs, _ = plain.reset(seed=SEED)
-    start = tuple(float(v) for v in obs["pose"])
-    slot_id, _ = HybridAStarParker().choose_slot(start, plain.world_map)
-    return Scenario(name="easy", scene="scene1", ego=EgoStart(pose=start), target=slot_id)
+    return easy_scenario(sim, SEED)
 
 
 def _park(env: ParkingEnv) -> tuple[list[np.ndarray], dict]:

@@ -30,13 +30,12 @@ from parksim.planners import HybridAStarParker
 from parksim.render.actors import Actor
 from parksim.scenarios import ActorSpec, Scenario, Scorecard, dump_scenario
 from parksim.scenarios.episode import load_actor_asset
-from parksim.scenarios.spec import EgoStart
 from parksim.server import Settings, create_app
 from parksim.server.deps import get_episodes
 from parksim.server.episodes import EpisodeStore
 from parksim.server.scenes import SceneRegistry
 from parksim.sim import LocalSim
-from sim_fixtures import make_bundle, running_server
+from sim_fixtures import easy_scenario, make_bundle, running_server
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 2
@@ -53,12 +52,10 @@ def sim(tmp_path_factory):
 @pytest.fixture(scope="module")
 def easy(sim):
     """The env's random start of ``SEED``, the slot Hybrid A* picks from it, and a pedestrian standing in view."""
-    plain = ParkingEnv(sim=sim, cameras=[], privileged=True)
-    obs, _ = plain.reset(seed=SEED)
-    start = tuple(float(v) for v in obs["pose"])
-    slot_id, _ = HybridAStarParker().choose_slot(start, plain.world_map)
-    standing = ActorSpec(name="standing", asset="pedestrian", pose=(start[0] - 6.0, start[1] + 1.5, 0.0))
-    return Scenario(name="easy", scene="scene1", ego=EgoStart(pose=start), target=slot_id, actors=(standing,))
+    plain = easy_scenario(sim, SEED)
+    x, y, _ = plain.ego.pose
+    standing = ActorSpec(name="standing", asset="pedestrian", pose=(x - 6.0, y + 1.5, 0.0))
+    return plain.model_copy(update={"actors": (standing,)})
 
 
 @pytest.fixture(scope="module")

@@ -201,6 +201,7 @@ def create_app(scenes: str | Path | SceneRegistry | Mapping[str, Bundle | str | 
     """
     settings = settings or Settings()
     registry = _registry(scenes, strict, settings.device)
+    registry.warm_up()   # compile the kernels now, not under the first request's render timeout
 
     app = FastAPI(title="ParkSim simulator", version=__import__("parksim").__version__, docs_url=None, redoc_url=None,
                   description="Renders of reconstructed parking garages (four fisheye views and a BEV) at any ego "

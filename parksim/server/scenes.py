@@ -25,9 +25,12 @@ from .settings import Settings
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["SceneRegistry", "UnknownScene", "check_pose"]
+__all__ = ["SceneRegistry", "UnknownScene", "check_pose", "WARM_UP_SCALE"]
 
 log = logging.getLogger(__name__)
+
+WARM_UP_SCALE = 0.25
+"""Image scale of ``SceneRegistry.warm_up``'s renders (the kernels compiled do not depend on it)."""
 
 
 class UnknownScene(LookupError):
@@ -78,6 +81,19 @@ class SceneRegistry:
     @property
     def ids(self) -> list[str]:
         return list(self.sims)
+
+    def warm_up(self, scale: float = WARM_UP_SCALE) -> None:
+        """Render every scene once, small (all cameras, depth and the BEV at the middle of its bounds), before the
+        app serves: the first render after an install or a kernel change compiles the kernels (a minute or more on
+        two cores), which must not run into a request's ``render_timeout_s``. Loaded from the kernel cache it
+        takes milliseconds.
+
+        Args:
+            scale: image size relative to the rig's cameras.
+        """
+        for sim in self.sims.values():
+            (x0, x1), (y0, y1) = sim.bounds["x"], sim.bounds["y"]
+            sim.render(((x0 + x1) / 2, (y0 + y1) / 2, 0.0), None, bev=True, scale=scale, depth=True)
 
     def get(self, scene_id: str | None) -> LocalSim:
         """The scene ``scene_id`` (the default scene when None)."""
