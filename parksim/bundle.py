@@ -33,9 +33,9 @@ from .gaussians import GaussianScene, PLYFormatError
 from .rig import BEVSpec, CalibrationError, Rig
 from .visibility import VisibilityGrid
 
-__all__ = ["Bundle", "BundleError", "load", "save", "recorded_path", "garage_box", "scene_extent", "absurd_gaussians",
-           "drop_absurd", "BUNDLE_VERSION", "RECORDED_PATH_POINTS", "EXTENT_MULTIPLE", "MIN_EXTENT_M",
-           "MAX_OPACITY_LOGIT", "MAX_DROPPED_FRACTION"]
+__all__ = ["Bundle", "BundleError", "load", "save", "read_map", "is_bundle", "recorded_path", "garage_box",
+           "scene_extent", "absurd_gaussians", "drop_absurd", "BUNDLE_VERSION", "RECORDED_PATH_POINTS",
+           "EXTENT_MULTIPLE", "MIN_EXTENT_M", "MAX_OPACITY_LOGIT", "MAX_DROPPED_FRACTION"]
 
 log = logging.getLogger(__name__)
 
@@ -283,6 +283,34 @@ def _inside(directory: Path, name: str, key: str) -> Path:
     return path
 
 
+def is_bundle(directory: str | Path) -> bool:
+    """Whether ``directory`` looks like a scene bundle (it holds ``bundle.json``), without reading it.
+
+    Args:
+        directory: a folder.
+
+    Returns:
+        True when its ``bundle.json`` exists.
+    """
+    return (Path(directory) / META).is_file()
+
+
+def read_map(directory: str | Path) -> dict[str, Any] | None:
+    """A bundle's ``map.json`` alone, without loading its Gaussians (what scenario tools need of a scene).
+
+    Args:
+        directory: the bundle folder.
+
+    Returns:
+        The map, or None when the bundle has none.
+
+    Raises:
+        BundleError: the map is unreadable or points outside the folder.
+    """
+    directory = Path(directory)
+    return _read_json(directory / MAP) if _inside(directory, MAP, "file").is_file() else None
+
+
 def load(directory: str | Path) -> Bundle:
     """Read a bundle folder written by ``save`` (or by ``parksim reconstruct``); every file must lie inside it.
 
@@ -314,7 +342,7 @@ def load(directory: str | Path) -> Bundle:
         rig = Rig.load(directory / RIG)
     except (PLYFormatError, CalibrationError) as e:
         raise BundleError(str(e)) from None
-    world_map = _read_json(directory / MAP) if _inside(directory, MAP, "file").is_file() else None
+    world_map = read_map(directory)
     poses = _read_json(directory / POSES) if _inside(directory, POSES, "file").is_file() else None
     meta.pop("version")
     grid = _load_visibility(directory, meta.get("visibility"), len(scene))

@@ -82,14 +82,15 @@ def _make(args: argparse.Namespace) -> int:
     """``scenarios make``: the set, its thumbnails, one line saying what was written."""
     from collections import Counter
 
+    from ..bundle import read_map
     from ..imageio import write_image
     from ..scenarios import write_set
     from ..scenarios.make import make_set
     from .outputs import check_output_folder
 
     check_output_folder(args.output, overwrite=args.overwrite)
-    world_map = json.loads((args.bundle / "map.json").read_text()) if (args.bundle / "map.json").is_file() else None
-    if world_map is None:
+    world_map = read_map(args.bundle)
+    if not world_map:
         raise ValueError(f"{args.bundle}: no map.json (a scene bundle with a slot map is needed)")
     scene = os.path.relpath(args.bundle.resolve(), args.output.resolve())   # the set moves with its scene
     made = make_set(world_map, scene, args.count, args.seed, args.name)
@@ -132,7 +133,7 @@ def _run(args: argparse.Namespace) -> int:
     with _bar(total if args.plots else 0, "plots", args.quiet or not args.plots) as bar:
         write_run(result, out, plots=args.plots, overwrite=args.overwrite, device=args.device,
                   done=lambda _: bar.update(1))
-    print(summary_table(result.runs))
+    print(summary_table({"": result.runs}))
     print(f"wrote {out}: results.json, results.md, timings.json" + (", plots/" if args.plots else ""))
     return 0
 

@@ -277,14 +277,14 @@ def check_planner(spec: str, detector: str | Path | None = None) -> None:
 _NO_DETECTOR = "the perception planner needs a slot detector checkpoint (--detector PATH)"
 
 
-def make_planner(spec: str, vehicle: VehicleParams = VehicleParams(), detector: str | Path | None = None,
+def make_planner(spec: str, vehicle: VehicleParams = VehicleParams(), detector: Any = None,
                  bev_spec: Any = None) -> ScenarioPlanner:
     """A fresh planner from its name in ``PLANNERS`` or ``"module:Class"``.
 
     Args:
         spec: ``geometric``, ``hybrid``, ``perception`` or ``"module:Class"`` (made with no arguments).
         vehicle: the ego.
-        detector: the slot detector checkpoint (``perception`` only).
+        detector: the slot detector (``perception`` only): a loaded one, or its checkpoint path.
         bev_spec: the scene rig's ``BEVSpec`` (``perception`` only).
 
     Returns:
@@ -305,7 +305,8 @@ def make_planner(spec: str, vehicle: VehicleParams = VehicleParams(), detector: 
         from ..recon.detectors import load_detector
         from .perception import PerceptionParker
 
-        return PerceptionPlanner(PerceptionParker(load_detector(Path(detector)), bev_spec, vehicle))
+        model = load_detector(Path(detector)) if isinstance(detector, (str, Path)) else detector
+        return PerceptionPlanner(PerceptionParker(model, bev_spec, vehicle))
     module, _, name = spec.partition(":")
     if not (module and name):
         raise ValueError(f"unknown planner {spec!r}: choose {', '.join(PLANNERS)} or module:Class")

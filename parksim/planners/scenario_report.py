@@ -8,20 +8,23 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import json
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from statistics import median
 from typing import Any
 
+import numpy as np
+
 from ..fileio import atomic_directory
 from ..scenarios.score import Scorecard
-from .scenario_runs import OUTCOMES, EpisodeRun, SetRun, summarise
+from .scenario_runs import OUTCOMES, EpisodeRun, SetRun, by_difficulty
 
-__all__ = ["markdown", "write_run", "summary_rows", "summary_table", "SUMMARY_HEADER"]
+__all__ = ["markdown", "write_run", "summary_table", "SUMMARY_HEADER"]
 
 SUMMARY_HEADER = ("| set | episodes | parked | collision | no path | out of time | final dist. p50 (cm) | "
                   "heading p50 (deg) | time p50 (s) | path p50 (m) | dir. changes p50 | jerk p90 (m/s^3) |")
-"""The summary table's header (``summary_rows`` gives its rows)."""
+"""The summary table's header (``summary_table`` puts the rows under it)."""
 
 
 def _p50(cards: Sequence[Scorecard], field: str, scale: float = 1.0) -> str:
@@ -30,44 +33,34 @@ def _p50(cards: Sequence[Scorecard], field: str, scale: float = 1.0) -> str:
     return f"{median(values):.1f}" if values else "-"
 
 
-def summary_rows(runs: Sequence[EpisodeRun], label: str = "") -> list[str]:
-    """The summary table's rows: all episodes, then each difficulty present.
-
-    Args:
-        runs: the episodes.
-        label: put before each row's group name (e.g. the planner).
-
-    Returns:
-        Markdown rows under ``SUMMARY_HEADER``.
-    """
-    summary = summarise(runs)
+def _summary_rows(runs: Sequence[EpisodeRun], label: str = "") -> list[str]:
+    """The summary table's rows: all episodes, then each difficulty present, each named after ``label``."""
     rows = []
-    for group, stats in summary.items():
-        chosen = [r for r in runs if group in ("all", r.difficulty)]
+    for group, chosen in by_difficulty(runs).items():
         cards = [r.card for r in chosen]
         n = len(chosen)
-        counts = [stats["outcomes"].get(o, 0) for o in OUTCOMES]
+        counts = [sum(r.outcome == o for r in chosen) for o in OUTCOMES]
         share = " | ".join(f"{c} ({100 * c / n:.0f} %)" for c in counts)
         parked = [r.card for r in chosen if r.outcome == "parked"]
-        jerk = stats["peak_jerk"].get("p90")
+        jerk = float(np.percentile([c.peak_jerk for c in cards], 90))
         rows.append(f"| {label}{group} | {n} | {share} | {_p50(parked, 'final_distance', 100)} | "
                     f"{_p50(parked, 'final_heading_error')} | {_p50(cards, 'time')} | {_p50(cards, 'path_length')} | "
-                    f"{_p50(cards, 'direction_changes')} | {'-' if jerk is None else f'{jerk:.1f}'} |")
+                    f"{_p50(cards, 'direction_changes')} | {jerk:.1f} |")
     return rows
 
 
-def summary_table(runs: Sequence[EpisodeRun], label: str = "") -> str:
-    """The summary table: ``SUMMARY_HEADER``, its rule and ``summary_rows``.
+def summary_table(runs: Mapping[str, Sequence[EpisodeRun]]) -> str:
+    """The summary table: ``SUMMARY_HEADER``, its rule and the rows of each group of runs (all, per difficulty).
 
     Args:
-        runs: the episodes.
-        label: as ``summary_rows``.
+        runs: label -> episodes; each group's rows start with its label ("" for one group).
 
     Returns:
         Markdown lines.
     """
     rule = "| --- " * (SUMMARY_HEADER.count("|") - 1) + "|"
-    return "\n".join([SUMMARY_HEADER, rule, *summary_rows(runs, label)])
+    return "\n".join([SUMMARY_HEADER, rule, *(row for label, group in runs.items()
+                                                for row in _summary_rows(group, label))])
 
 
 def _clearance(value: float | None) -> str:
@@ -87,7 +80,7 @@ def markdown(result: SetRun, plots: bool = True) -> str:
     lines = [f"# {result.planner} on scenario set {result.name}", "",
              "Parked, collision, no path, out of time: episodes (share). Final distance and heading: medians over "
              "the parked episodes; time, path length and direction changes: medians over all.", "",
-             summary_table(result.runs), "",
+             summary_table({"": result.runs}), "",
              "| scenario | difficulty | outcome | final dist. (cm) | heading (deg) | contacts static / actors | "
              "min. clearance static / actors (m) | time (s) | path (m) | dir. changes | peak jerk (m/s^3) |",
              "| --- " * 11 + "|"]
@@ -121,7 +114,7 @@ def write_run(result: SetRun, out: str | Path, *, plots: bool = True, overwrite:
     """
     with atomic_directory(Path(out), overwrite=overwrite) as tmp:
         (tmp / "results.json").write_text(result.results_json())
-        (tmp / "timings.json").write_text(result.timings_json())
+        (tmp / "timings.json").write_text(json.dumps({"episodes": result.timings()}, indent=1) + "\n")
         (tmp / "results.md").write_text(markdown(result, plots))
         if plots:
             _plot(result, tmp / "plots", device, done)
@@ -130,8 +123,7 @@ def write_run(result: SetRun, out: str | Path, *, plots: bool = True, overwrite:
 
 def _plot(result: SetRun, folder: Path, device: str, done: Callable[[str], None] | None) -> None:
     """One trajectory plot per episode over its scene's BEV map."""
-    import json
-
+    from ..bundle import read_map
     from ..scenarios.pictures import bev_mosaic, plot_episode
     from ..sim import LocalSim
 
@@ -141,7 +133,7 @@ def _plot(result: SetRun, folder: Path, device: str, done: Callable[[str], None]
         scene = r.scene
         if scene not in maps:
             bundle = result.scenes[scene]
-            maps[scene] = bev_mosaic(LocalSim(bundle, device=device), json.loads((bundle / "map.json").read_text()))
+            maps[scene] = bev_mosaic(LocalSim(bundle, device=device), read_map(bundle) or {})
         plot_episode(r.log, r.card, maps[scene], folder / f"{r.scenario}.png",
                      f"{result.planner}: {r.scenario} ({r.difficulty}), {r.outcome}")
         if done is not None:

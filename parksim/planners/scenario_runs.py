@@ -17,14 +17,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..bundle import Bundle
+from ..bundle import Bundle, is_bundle, read_map
 from ..scenarios.episode import Episode
 from ..scenarios.score import EpisodeLog, Scorecard, aggregate
 from ..scenarios.spec import Scenario, ScenarioError
 from ..vehicle import VehicleParams
 from .scenario_planners import ScenarioPlanner, check_planner, make_planner
 
-__all__ = ["EpisodeRun", "SetRun", "drive", "run_scenarios", "run_set", "resolve_scene", "summarise", "OUTCOMES"]
+__all__ = ["EpisodeRun", "SetRun", "drive", "run_scenarios", "run_set", "resolve_scene", "summarise", "by_difficulty",
+           "OUTCOMES"]
 
 OUTCOMES = ("parked", "collision", "no path found", "not parked in time")
 """How an episode ends, in the order tables list them."""
@@ -131,9 +132,14 @@ def run_scenarios(scenarios: Sequence[Scenario], world_map: dict[str, Any], bund
 
         sim = LocalSim(bundle, device=device)
     bev_spec = sim.bundle.rig.bev if sim is not None else None
+    model: Any = detector
+    if planner == "perception" and detector is not None:   # read once, shared by every episode's fresh planner
+        from ..recon.detectors import load_detector
+
+        model = load_detector(Path(detector))
     runs = []
     for scenario in scenarios:
-        agent = make_planner(planner, vehicle, detector, bev_spec)
+        agent = make_planner(planner, vehicle, model, bev_spec)
         wall, cpu = time.perf_counter(), time.process_time()
         episode = Episode(scenario, world_map, sim if agent.bev else None, cameras=[], bev=agent.bev, scale=scale,
                           privileged=agent.privileged, vehicle=vehicle, asset_root=asset_root)
@@ -165,7 +171,7 @@ def resolve_scene(scene: str, set_folder: Path, scenes: Path | None = None) -> P
     """
     candidates = [Path(scene), set_folder / scene] + ([scenes / scene] if scenes is not None else [])
     for path in candidates:
-        if (path / "bundle.json").is_file():
+        if is_bundle(path):
             return path
     tried = ", ".join(str(p) for p in dict.fromkeys(candidates))
     raise ScenarioError(f"scene {scene!r}: no scene bundle (bundle.json) at {tried}; give --scenes or --bundle")
@@ -180,12 +186,24 @@ def summarise(runs: Sequence[EpisodeRun]) -> dict[str, Any]:
     Returns:
         ``{"all": ..., "easy": ..., ...}``, each ``aggregate``'s card summary with ``outcomes`` counts.
     """
+    return {name: aggregate([r.card for r in group]) | {
+        "outcomes": {o: n for o in OUTCOMES if (n := Counter(r.outcome for r in group)[o])}}
+        for name, group in by_difficulty(runs).items()}
+
+
+def by_difficulty(runs: Sequence[EpisodeRun]) -> dict[str, list[EpisodeRun]]:
+    """The runs grouped as the summaries show them.
+
+    Args:
+        runs: the episodes.
+
+    Returns:
+        ``"all"``, then each difficulty in the order it first appears -> its runs.
+    """
     groups: dict[str, list[EpisodeRun]] = {"all": list(runs)}
     for run in runs:
         groups.setdefault(run.difficulty, []).append(run)
-    return {name: aggregate([r.card for r in group]) | {
-        "outcomes": {o: n for o in OUTCOMES if (n := Counter(r.outcome for r in group)[o])}}
-        for name, group in groups.items()}
+    return groups
 
 
 @dataclass(frozen=True)
@@ -204,24 +222,38 @@ class SetRun:
     runs: list[EpisodeRun]
     scenes: dict[str, Path]
 
-    def results_json(self) -> str:
-        """``results.json``'s text: the set, the planner, the summary and every episode (no times, no paths).
+    def results(self) -> dict[str, Any]:
+        """What ``results.json`` holds: the set, the planner, the summary and every episode (no times, no paths).
 
         Returns:
-            Indented JSON, the same for the same runs.
+            Plain JSON types, the same for the same runs.
         """
-        body = {"set": self.name, "planner": self.planner, "scenes": sorted(self.scenes),
+        return {"set": self.name, "planner": self.planner, "scenes": sorted(self.scenes),
                 "summary": summarise(self.runs), "episodes": [r.to_dict() for r in self.runs]}
-        return json.dumps(body, indent=1) + "\n"
 
-    def timings_json(self) -> str:
-        """``timings.json``'s text: each episode's wall and process-CPU seconds.
+    def timings(self) -> list[dict[str, Any]]:
+        """What ``timings.json`` holds: each episode's wall and process-CPU seconds.
 
         Returns:
-            Indented JSON.
+            ``{"scenario", "wall_s", "cpu_s"}`` per episode, in order.
         """
-        return json.dumps({"episodes": [{"scenario": r.scenario, "wall_s": r.wall_s, "cpu_s": r.cpu_s}
-                                        for r in self.runs]}, indent=1) + "\n"
+        return [{"scenario": r.scenario, "wall_s": r.wall_s, "cpu_s": r.cpu_s} for r in self.runs]
+
+    def results_json(self) -> str:
+        """``results.json``'s text.
+
+        Returns:
+            ``results()`` as indented JSON.
+        """
+        return json.dumps(self.results(), indent=1) + "\n"
+
+
+def _slot_map(bundle: Path) -> dict[str, Any]:
+    """A bundle's map, which scenarios need (``ScenarioError`` when it has none)."""
+    world_map = read_map(bundle)
+    if not world_map:
+        raise ScenarioError(f"{bundle}: the scene has no map.json (scenarios need its slot map)")
+    return world_map
 
 
 def _chunk(scenarios: Sequence[Scenario], world_map: dict[str, Any], bundle: str, planner: str,
@@ -264,7 +296,7 @@ def run_set(path: str | Path, planner: str, *, scenes: str | Path | None = None,
     check_planner(planner, detector)   # before any bundle is read
     root = None if scenes is None else Path(scenes)
     bundles = {s.scene: resolve_scene(s.scene if bundle is None else str(bundle), folder, root) for s in scenarios}
-    maps = {scene: json.loads((b / "map.json").read_text()) for scene, b in bundles.items()}
+    maps = {scene: _slot_map(b) for scene, b in bundles.items()}
     options: dict[str, Any] = {"detector": None if detector is None else str(Path(detector).resolve()),
                                "device": device, "scale": scale, "asset_root": str(folder.resolve())}
     if not ray:

@@ -18,7 +18,6 @@ draws every trajectory over each scene's BEV map, coloured by outcome.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,6 +80,7 @@ class ScenariosSuite(Suite):
 
     def run(self, options: ScenariosOptions, context: Context) -> Outcome:
         """Make or reuse each scene's bundle, set and detector; run every planner over every set."""
+        from ...bundle import is_bundle, read_map
         from ...planners.scenario_runs import run_set
         from ...scenarios import write_set
         from ...scenarios.make import make_set
@@ -94,9 +94,9 @@ class ScenariosSuite(Suite):
         for preset in options.presets:
             folder = context.work / "scenarios" / f"{preset}_{options.gaussians}_seed{context.seed}"
             bundle = bundles[preset] = folder / "bundle"
-            if not (bundle / "bundle.json").is_file():
+            if not is_bundle(bundle):
                 surface_bundle(bundle, preset, options.gaussians, context.seed)
-            world_map = json.loads((bundle / "map.json").read_text())
+            world_map = read_map(bundle) or {}
             set_dir = folder / f"set_{options.count}_seed{context.seed}"
             made = make_set(world_map, os.path.relpath(bundle, set_dir), options.count, context.seed, preset)
             write_set(set_dir, made, overwrite=True)
@@ -115,8 +115,7 @@ class ScenariosSuite(Suite):
                                                     scale=options.scale, done=lambda _: bar.update(1))
             data["scenes"].setdefault(preset, {}).update(
                 set=str(set_dir), bundle=str(bundle),
-                planners={p: json.loads(r.results_json()) | {"timings": json.loads(r.timings_json())["episodes"]}
-                          for p, r in runs[preset].items()})
+                planners={p: r.results() | {"timings": r.timings()} for p, r in runs[preset].items()})
         figures = _figures(runs, options.count)
         return Outcome(figures, data, lambda png: _plot(runs, bundles, png), _details(runs))
 
@@ -150,15 +149,13 @@ def _figures(runs: dict[str, dict[str, Any]], count: int) -> list[Figure]:
 
 def _details(runs: dict[str, dict[str, Any]]) -> str:
     """The scorecard tables per scene (every planner), and Hybrid A*'s misses on easy and medium by cause."""
-    from ...planners.scenario_report import SUMMARY_HEADER, summary_rows
+    from ...planners.scenario_report import summary_table
 
     lines = ["Every planner drove the same scenarios. Parked, collision, no path, out of time: episodes (share). "
              "Final distance and heading: medians over the parked episodes; time, path length and direction changes: "
              "medians over all; jerk: the 90th percentile of the episodes' peak jerk.", ""]
     for preset, by_planner in runs.items():
-        lines += [f"## {preset}", "", SUMMARY_HEADER, "| --- " * (SUMMARY_HEADER.count("|") - 1) + "|"]
-        for planner, result in by_planner.items():
-            lines += summary_rows(result.runs, f"{planner}: ")
+        lines += [f"## {preset}", "", summary_table({f"{p}: ": r.runs for p, r in by_planner.items()})]
         hybrid = by_planner.get("hybrid")
         if hybrid is not None:
             missed = [r for r in hybrid.runs if r.difficulty in ("easy", "medium") and r.outcome != "parked"]
@@ -170,6 +167,7 @@ def _details(runs: dict[str, dict[str, Any]]) -> str:
 
 def _plot(runs: dict[str, dict[str, Any]], bundles: dict[str, Path], png: Path) -> None:
     """A grid, scenes by planners: each scene's BEV map with every trajectory coloured by outcome."""
+    from ...bundle import read_map
     from ...scenarios.pictures import bev_mosaic
     from ...sim import LocalSim
 
@@ -178,8 +176,7 @@ def _plot(runs: dict[str, dict[str, Any]], bundles: dict[str, Path], png: Path) 
     fig, axes = plt.subplots(len(presets), len(planners), figsize=(4.2 * len(planners), 3.0 * len(presets)),
                              squeeze=False)
     for i, preset in enumerate(presets):
-        world_map = json.loads((bundles[preset] / "map.json").read_text())
-        bev = bev_mosaic(LocalSim(bundles[preset]), world_map)
+        bev = bev_mosaic(LocalSim(bundles[preset]), read_map(bundles[preset]) or {})
         for j, planner in enumerate(planners):
             ax = axes[i][j]
             ax.imshow(bev.image, extent=bev.extent, origin="upper")
